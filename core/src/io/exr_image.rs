@@ -1,0 +1,611 @@
+//! Multi-layer OpenEXR output (and input) with 32-bit float samples.
+//!
+//! Files written here have exactly this layout, which Blender, Nuke,
+//! `exrheader` and every OpenEXR viewer understand:
+//!
+//! * one part (a single-part, non-deep, scan-line file);
+//! * one channel per `(layer, channel)` pair, named `<layer>.<channel>`
+//!   (`inscatter.R`, `transmittance.G`, `depth.Z`), or just `<channel>` for a
+//!   layer with an empty name; names are stored as UTF-8 bytes, like OpenEXR
+//!   itself does;
+//! * 32-bit float samples, stored bit-exactly (NaN payloads included);
+//! * `ZIP` compression in blocks of 16 scan lines (OpenEXR's
+//!   `ZIP_COMPRESSION`, the exr crate's `Compression::ZIP16`; lossless);
+//! * increasing-Y line order, data window = display window =
+//!   `(0,0)-(width-1,height-1)`, pixel aspect 1;
+//! * pixel data row-major, index `y * width + x`, row `y = 0` the **top** row
+//!   of the image (OpenEXR's y axis points down).
+//!
+//! The split of a channel name into layer and channel happens at the **last**
+//! dot, so layer names may contain dots themselves: `inscatter.key light.R` is
+//! channel `R` of layer `inscatter.key light`.
+
+use std::collections::HashSet;
+use std::io::{Read, Seek, SeekFrom, Write};
+use std::path::Path;
+
+use exr::prelude::{
+    AnyChannel, AnyChannels, Blocks, Compression, Encoding, FlatSamples, Image, LineOrder, ReadChannels, ReadLayers, SmallVec,
+    SpecificChannels, Text, Vec2, WritableImage,
+};
+
+use super::{ImageIoError, checked_pixel_count, write_atomically};
+
+/// OpenEXR channel names are limited to 255 bytes (plus the terminating NUL).
+const MAX_CHANNEL_NAME_BYTES: usize = 255;
+
+/// Names of 32 bytes or more need the "long names" flag (bit 10 of the
+/// version field) in the file header, or OpenEXR 3 refuses the file.
+const LONG_NAME_BYTES: usize = 32;
+
+/// One named layer of an image: a group of channels sharing a name prefix.
+///
+/// Every channel holds `width * height` samples, row-major, row 0 the top row.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ImageLayer {
+    /// Layer name, e.g. `"inscatter"` or `"inscatter.key light"`; the empty
+    /// string means plain channels without a prefix (`"R"`, `"G"`, `"B"`).
+    pub name: String,
+    /// `(channel name, samples)` pairs, e.g. `[("R", ..), ("G", ..),
+    /// ("B", ..)]` or `[("Z", ..)]`. Channel names must be non-empty and must
+    /// not contain a dot.
+    pub channels: Vec<(String, Vec<f32>)>,
+}
+
+impl ImageLayer {
+    /// The samples of the channel called `channel`, if the layer has one.
+    pub fn channel(&self, channel: &str) -> Option<&[f32]> {
+        self.channels
+            .iter()
+            .find(|(name, _)| name == channel)
+            .map(|(_, samples)| samples.as_slice())
+    }
+}
+
+/// Writes a single-part OpenEXR file holding all `layers`, atomically.
+///
+/// See the [module documentation](self) for the exact file layout. Fails with
+/// [`ImageIoError::Invalid`] (writing nothing) if the size is zero, a channel
+/// does not hold `width * height` samples, there is no channel at all, a layer
+/// has no channels, two layers share a name, a channel name is empty, contains
+/// a dot or repeats within its layer, or a full name `<layer>.<channel>`
+/// contains a NUL character or is longer than 255 bytes of UTF-8.
+pub fn write_layers_exr(path: &Path, width: usize, height: usize, layers: &[ImageLayer]) -> Result<(), ImageIoError> {
+    let pixels = checked_pixel_count(path, width, height)?;
+    let invalid = |message: String| ImageIoError::Invalid(format!("{}: {message}", path.display()));
+
+    if layers.is_empty() {
+        return Err(invalid("an EXR image needs at least one layer".into()));
+    }
+    let mut layer_names = HashSet::new();
+    let mut full_names = HashSet::new();
+    let mut list = SmallVec::new();
+    let mut long_names = false;
+    for layer in layers {
+        if !layer_names.insert(layer.name.as_str()) {
+            return Err(invalid(format!("duplicate layer name {:?}", layer.name)));
+        }
+        if layer.channels.is_empty() {
+            return Err(invalid(format!("layer {:?} has no channels", layer.name)));
+        }
+        for (channel, samples) in &layer.channels {
+            if channel.is_empty() {
+                return Err(invalid(format!("layer {:?} has a channel with an empty name", layer.name)));
+            }
+            if channel.contains('.') {
+                return Err(invalid(format!(
+                    "channel name {channel:?} of layer {:?} contains a dot \
+                     (dots separate layers from channels)",
+                    layer.name
+                )));
+            }
+            let full = full_channel_name(&layer.name, channel);
+            if full.contains('\0') {
+                return Err(invalid(format!("channel name {full:?} contains a NUL")));
+            }
+            if full.len() > MAX_CHANNEL_NAME_BYTES {
+                return Err(invalid(format!(
+                    "channel name {full:?} is {} bytes long, OpenEXR allows at most \
+                     {MAX_CHANNEL_NAME_BYTES}",
+                    full.len()
+                )));
+            }
+            if samples.len() != pixels {
+                return Err(invalid(format!(
+                    "channel {full:?} has {} samples, a {width}x{height} image needs {pixels}",
+                    samples.len()
+                )));
+            }
+            long_names |= full.len() >= LONG_NAME_BYTES;
+            let text = Text::from_slice_unchecked(full.as_bytes());
+            if !full_names.insert(full) {
+                return Err(invalid(format!("duplicate channel {:?} in layer {:?}", channel, layer.name)));
+            }
+            list.push(AnyChannel::new(text, FlatSamples::F32(samples.clone())));
+        }
+    }
+
+    let image = Image::from_encoded_channels((width, height), exr_encoding(), AnyChannels::sort(list));
+    write_exr_atomically(path, long_names, |file| image.write().to_unbuffered(file))
+}
+
+/// Reads an OpenEXR file written by [`write_layers_exr`] (or any other
+/// single-part, non-deep OpenEXR file) and returns `(width, height, layers)`.
+///
+/// Channel names are split into layer and channel at the last dot (see the
+/// [module documentation](self)). Layers come sorted by name (byte order, the
+/// plain layer `""` first); within a layer the channels come in the order
+/// `R`, `G`, `B`, `A`, then all others sorted by name. Samples are row-major,
+/// row 0 the top row of the data window. Half-float samples are widened to
+/// `f32` exactly, unsigned-integer samples converted with `as f32`. Only the
+/// largest resolution level of a mip-mapped file is read. Multi-part files are
+/// refused with [`ImageIoError::Exr`].
+pub fn read_layers_exr(path: &Path) -> Result<(usize, usize, Vec<ImageLayer>), ImageIoError> {
+    let image = exr::prelude::read()
+        .no_deep_data()
+        .largest_resolution_level()
+        .all_channels()
+        .all_layers()
+        .all_attributes()
+        .from_file(path)
+        .map_err(|e| exr_error(path, e))?;
+
+    let part = match image.layer_data.as_slice() {
+        [part] => part,
+        parts => {
+            return Err(ImageIoError::Exr {
+                path: path.to_path_buf(),
+                message: format!("expected a single-part file, found {} parts", parts.len()),
+            });
+        }
+    };
+    let (width, height) = (part.size.x(), part.size.y());
+
+    let mut layers: Vec<ImageLayer> = Vec::new();
+    for channel in &part.channel_data.list {
+        let full = String::from_utf8_lossy(channel.name.bytes());
+        let (layer_name, channel_name) = split_channel_name(&full);
+        let samples: Vec<f32> = match &channel.sample_data {
+            FlatSamples::F32(values) => values.clone(),
+            FlatSamples::F16(values) => values.iter().map(|v| v.to_f32()).collect(),
+            #[allow(clippy::cast_precision_loss)]
+            FlatSamples::U32(values) => values.iter().map(|&v| v as f32).collect(),
+        };
+        let entry = (channel_name.to_owned(), samples);
+        match layers.iter_mut().find(|layer| layer.name == layer_name) {
+            Some(layer) => layer.channels.push(entry),
+            None => layers.push(ImageLayer {
+                name: layer_name.to_owned(),
+                channels: vec![entry],
+            }),
+        }
+    }
+    layers.sort_by(|a, b| a.name.cmp(&b.name));
+    for layer in &mut layers {
+        layer
+            .channels
+            .sort_by(|(a, _), (b, _)| channel_rank(a).cmp(&channel_rank(b)).then_with(|| a.cmp(b)));
+    }
+    Ok((width, height, layers))
+}
+
+/// Writes a plain RGB OpenEXR file (channels `R`, `G`, `B`, no layer prefix),
+/// atomically, e.g. for world textures.
+///
+/// `rgb` holds `width * height` pixels, row-major, row 0 the top row. The file
+/// layout is otherwise the one described in the
+/// [module documentation](self). Fails with [`ImageIoError::Invalid`] if the
+/// size is zero or does not match `rgb.len()`.
+pub fn write_rgb_exr(path: &Path, width: usize, height: usize, rgb: &[[f32; 3]]) -> Result<(), ImageIoError> {
+    let pixels = checked_pixel_count(path, width, height)?;
+    if rgb.len() != pixels {
+        return Err(ImageIoError::Invalid(format!(
+            "{}: {} RGB pixels given, a {width}x{height} image needs {pixels}",
+            path.display(),
+            rgb.len()
+        )));
+    }
+    let channels = SpecificChannels::rgb(|position: Vec2<usize>| {
+        let [r, g, b] = rgb[position.y() * width + position.x()];
+        (r, g, b)
+    });
+    let image = Image::from_encoded_channels((width, height), exr_encoding(), channels);
+    write_exr_atomically(path, false, |file| image.write().to_unbuffered(file))
+}
+
+/// The encoding of every file written here: ZIP in 16-line blocks, scan lines,
+/// increasing Y. (The exr crate's default, `Encoding::FAST_LOSSLESS`, would be
+/// RLE in 64x64 tiles with unspecified line order.)
+const fn exr_encoding() -> Encoding {
+    Encoding {
+        compression: Compression::ZIP16,
+        blocks: Blocks::ScanLines,
+        line_order: LineOrder::Increasing,
+    }
+}
+
+/// `<layer>.<channel>`, or `<channel>` for the plain layer `""`.
+fn full_channel_name(layer: &str, channel: &str) -> String {
+    if layer.is_empty() {
+        channel.to_owned()
+    } else {
+        format!("{layer}.{channel}")
+    }
+}
+
+/// Splits a full channel name at its last dot into `(layer, channel)`; a name
+/// without a dot, or ending in one, is a plain channel of layer `""`.
+fn split_channel_name(full: &str) -> (&str, &str) {
+    match full.rsplit_once('.') {
+        Some((layer, channel)) if !channel.is_empty() => (layer, channel),
+        _ => ("", full),
+    }
+}
+
+/// Sort key putting the colour channels first, in their usual order.
+fn channel_rank(name: &str) -> u8 {
+    match name {
+        "R" => 0,
+        "G" => 1,
+        "B" => 2,
+        "A" => 3,
+        _ => 4,
+    }
+}
+
+/// Converts an error of the exr crate, keeping I/O errors as such.
+fn exr_error(path: &Path, error: exr::error::Error) -> ImageIoError {
+    match error {
+        exr::error::Error::Io(source) => ImageIoError::io(path, source),
+        other => ImageIoError::Exr {
+            path: path.to_path_buf(),
+            message: other.to_string(),
+        },
+    }
+}
+
+/// Writes an OpenEXR file atomically with `encode`, then sets the header's
+/// long-names flag if needed.
+///
+/// The exr crate sets that flag only for long *attribute* names, not for
+/// channel names of 32 bytes or more, whereas OpenEXR requires it for both
+/// (OpenEXR 3 rejects such a file as "name too long" without it). The flag is
+/// bit 10 of the little-endian version field at bytes 4..8; it changes
+/// nothing else in a single-part file.
+fn write_exr_atomically<F>(path: &Path, long_names: bool, encode: F) -> Result<(), ImageIoError>
+where
+    F: FnOnce(&mut std::fs::File) -> exr::error::UnitResult,
+{
+    write_atomically(path, |file| {
+        encode(file).map_err(|e| exr_error(path, e))?;
+        if long_names {
+            set_long_names_flag(file).map_err(|e| ImageIoError::io(path, e))?;
+        }
+        Ok(())
+    })
+}
+
+/// Sets bit 10 of the version field of the OpenEXR file `file`.
+fn set_long_names_flag(file: &mut std::fs::File) -> std::io::Result<()> {
+    let mut version = [0_u8; 4];
+    file.seek(SeekFrom::Start(4))?;
+    file.read_exact(&mut version)?;
+    let flags = u32::from_le_bytes(version) | (1 << 10);
+    file.seek(SeekFrom::Start(4))?;
+    file.write_all(&flags.to_le_bytes())?;
+    file.flush()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::path::PathBuf;
+
+    /// A fresh, empty directory for one test.
+    fn temp_dir(test: &str) -> PathBuf {
+        let dir = std::env::temp_dir().join(format!("tyndall-exr-test-{}-{test}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(&dir).unwrap();
+        dir
+    }
+
+    /// Names of the files in `dir`.
+    fn dir_entries(dir: &Path) -> Vec<String> {
+        let mut names: Vec<String> = std::fs::read_dir(dir)
+            .unwrap()
+            .map(|entry| entry.unwrap().file_name().to_string_lossy().into_owned())
+            .collect();
+        names.sort();
+        names
+    }
+
+    /// A distinct value for every (layer, channel, x, y), exactly
+    /// representable, plus a few special bit patterns.
+    fn value(layer: usize, channel: usize, x: usize, y: usize) -> f32 {
+        match (layer, channel, x, y) {
+            (0, 0, 1, 1) => f32::NAN,
+            (0, 1, 2, 1) => f32::from_bits(0x7fc0_1234), // NaN with payload
+            (0, 2, 3, 1) => -0.0,
+            (1, 0, 4, 1) => f32::INFINITY,
+            (1, 1, 5, 1) => f32::from_bits(1), // smallest subnormal
+            _ => (1000 * layer + 100 * channel + 10 * y + x) as f32 + 0.25,
+        }
+    }
+
+    fn test_layers(width: usize, height: usize) -> Vec<ImageLayer> {
+        let layer_spec: [(&str, &[&str]); 3] = [
+            ("inscatter", &["R", "G", "B"]),
+            ("transmittance", &["R", "G", "B"]),
+            ("depth", &["Z"]),
+        ];
+        layer_spec
+            .iter()
+            .enumerate()
+            .map(|(l, (name, channels))| ImageLayer {
+                name: (*name).to_owned(),
+                channels: channels
+                    .iter()
+                    .enumerate()
+                    .map(|(c, channel)| {
+                        let samples = (0..height).flat_map(|y| (0..width).map(move |x| value(l, c, x, y))).collect();
+                        ((*channel).to_owned(), samples)
+                    })
+                    .collect(),
+            })
+            .collect()
+    }
+
+    #[test]
+    fn three_layers_round_trip_bit_exact() {
+        let dir = temp_dir("round-trip");
+        let path = dir.join("beauty.exr");
+        let (width, height) = (7, 5);
+        let layers = test_layers(width, height);
+        write_layers_exr(&path, width, height, &layers).unwrap();
+        assert_eq!(dir_entries(&dir), ["beauty.exr"], "temp file left behind");
+
+        let (w, h, read) = read_layers_exr(&path).unwrap();
+        assert_eq!((w, h), (width, height));
+        let names: Vec<&str> = read.iter().map(|layer| layer.name.as_str()).collect();
+        assert_eq!(names, ["depth", "inscatter", "transmittance"]);
+
+        for (l, original) in layers.iter().enumerate() {
+            let back = read.iter().find(|layer| layer.name == original.name).unwrap();
+            let channel_names: Vec<&str> = back.channels.iter().map(|(name, _)| name.as_str()).collect();
+            let expected: Vec<&str> = original.channels.iter().map(|(name, _)| name.as_str()).collect();
+            assert_eq!(channel_names, expected, "layer {}", original.name);
+            for (c, (channel, _)) in original.channels.iter().enumerate() {
+                let samples = back.channel(channel).unwrap();
+                assert_eq!(samples.len(), width * height);
+                for y in 0..height {
+                    for x in 0..width {
+                        assert_eq!(
+                            samples[y * width + x].to_bits(),
+                            value(l, c, x, y).to_bits(),
+                            "{}.{channel} at ({x},{y})",
+                            original.name
+                        );
+                    }
+                }
+            }
+        }
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    /// Row order and channel names as the exr crate itself sees them: the
+    /// first sample of the file's first (top) scan line is pixel (0,0).
+    #[test]
+    fn file_layout_as_seen_by_exr_crate() {
+        let dir = temp_dir("layout");
+        let path = dir.join("layout.exr");
+        let (width, height) = (7, 5);
+        write_layers_exr(&path, width, height, &test_layers(width, height)).unwrap();
+
+        let meta = exr::meta::MetaData::read_from_file(&path, false).unwrap();
+        assert_eq!(meta.headers.len(), 1);
+        let header = &meta.headers[0];
+        assert_eq!(header.compression, Compression::ZIP16);
+        assert_eq!(header.line_order, LineOrder::Increasing);
+        assert_eq!(header.blocks, exr::meta::BlockDescription::ScanLines);
+        assert_eq!(header.layer_size, Vec2(width, height));
+        assert_eq!(header.own_attributes.layer_position, Vec2(0, 0));
+        assert_eq!(
+            header.shared_attributes.display_window,
+            exr::prelude::IntegerBounds::new((0, 0), (width, height))
+        );
+        let names: Vec<String> = header.channels.list.iter().map(|channel| channel.name.to_string()).collect();
+        assert_eq!(
+            names,
+            [
+                "depth.Z",
+                "inscatter.B",
+                "inscatter.G",
+                "inscatter.R",
+                "transmittance.B",
+                "transmittance.G",
+                "transmittance.R"
+            ]
+        );
+        assert!(
+            header
+                .channels
+                .list
+                .iter()
+                .all(|channel| channel.sample_type == exr::prelude::SampleType::F32)
+        );
+
+        // Read the depth channel line by line, in file order.
+        let image = exr::prelude::read()
+            .no_deep_data()
+            .largest_resolution_level()
+            .all_channels()
+            .first_valid_layer()
+            .all_attributes()
+            .from_file(&path)
+            .unwrap();
+        let depth = &image.layer_data.channel_data.list[0];
+        assert_eq!(depth.name.to_string(), "depth.Z");
+        let FlatSamples::F32(z) = &depth.sample_data else {
+            panic!("depth is not f32")
+        };
+        // value(2, 0, x, y) = 2000 + 10 y + x + 0.25: the first row is y = 0.
+        let first_row: Vec<f32> = z[..width].to_vec();
+        let expected: Vec<f32> = (0..width).map(|x| 2000.25 + x as f32).collect();
+        assert_eq!(first_row, expected);
+        assert_eq!(z[width], 2010.25, "second row starts with (0,1)");
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn rgb_exr_has_plain_channel_names() {
+        let dir = temp_dir("rgb");
+        let path = dir.join("world.exr");
+        let (width, height) = (3, 2);
+        let rgb: Vec<[f32; 3]> = (0..width * height)
+            .map(|i| [i as f32, i as f32 + 0.5, -(i as f32) - 0.125])
+            .collect();
+        write_rgb_exr(&path, width, height, &rgb).unwrap();
+        assert_eq!(dir_entries(&dir), ["world.exr"]);
+
+        let (w, h, layers) = read_layers_exr(&path).unwrap();
+        assert_eq!((w, h), (width, height));
+        assert_eq!(layers.len(), 1);
+        assert_eq!(layers[0].name, "");
+        let names: Vec<&str> = layers[0].channels.iter().map(|(n, _)| n.as_str()).collect();
+        assert_eq!(names, ["R", "G", "B"]);
+        for (c, (_, samples)) in layers[0].channels.iter().enumerate() {
+            let expected: Vec<f32> = rgb.iter().map(|pixel| pixel[c]).collect();
+            assert_eq!(samples, &expected);
+        }
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn dotted_and_long_layer_names_round_trip() {
+        let dir = temp_dir("dotted");
+        let path = dir.join("lights.exr");
+        let long = "inscatter.a rather long light name über 32 bytes";
+        let layers = vec![
+            ImageLayer {
+                name: "inscatter.key light".into(),
+                channels: vec![("R".into(), vec![1.0; 2]), ("G".into(), vec![2.0; 2])],
+            },
+            ImageLayer {
+                name: long.into(),
+                channels: vec![("B".into(), vec![3.0; 2])],
+            },
+            ImageLayer {
+                name: String::new(),
+                channels: vec![("alpha".into(), vec![4.0; 2])],
+            },
+        ];
+        write_layers_exr(&path, 2, 1, &layers).unwrap();
+
+        // OpenEXR requires the long-names flag for a channel name >= 32 bytes.
+        let bytes = std::fs::read(&path).unwrap();
+        let version = u32::from_le_bytes(bytes[4..8].try_into().unwrap());
+        assert_eq!(version & 0xff, 2);
+        assert_ne!(version & (1 << 10), 0, "long-names flag not set");
+
+        let (_, _, read) = read_layers_exr(&path).unwrap();
+        let names: Vec<&str> = read.iter().map(|layer| layer.name.as_str()).collect();
+        assert_eq!(
+            names,
+            ["", "inscatter.a rather long light name über 32 bytes", "inscatter.key light"]
+        );
+        assert_eq!(read[0].channel("alpha").unwrap(), [4.0, 4.0]);
+        assert_eq!(read[1].channel("B").unwrap(), [3.0, 3.0]);
+        assert_eq!(read[2].channel("G").unwrap(), [2.0, 2.0]);
+
+        // Short names: no flag.
+        write_rgb_exr(&path, 1, 1, &[[0.0; 3]]).unwrap();
+        let bytes = std::fs::read(&path).unwrap();
+        assert_eq!(u32::from_le_bytes(bytes[4..8].try_into().unwrap()), 2);
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn missing_directory_is_an_error_naming_the_path() {
+        let dir = temp_dir("missing-dir");
+        let path = dir.join("no such dir").join("out.exr");
+        let err = write_layers_exr(&path, 7, 5, &test_layers(7, 5)).unwrap_err();
+        assert!(matches!(err, ImageIoError::Io { .. }), "{err:?}");
+        assert!(err.to_string().contains(&path.display().to_string()), "{err}");
+        let err = write_rgb_exr(&path, 1, 1, &[[0.0; 3]]).unwrap_err();
+        assert!(err.to_string().contains(&path.display().to_string()), "{err}");
+        assert!(dir_entries(&dir).is_empty());
+
+        let err = read_layers_exr(&dir.join("absent.exr")).unwrap_err();
+        assert!(matches!(err, ImageIoError::Io { .. }), "{err:?}");
+        assert!(err.to_string().contains("absent.exr"), "{err}");
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn failed_write_keeps_the_old_file() {
+        let dir = temp_dir("keep-old");
+        let path = dir.join("image.exr");
+        write_rgb_exr(&path, 1, 1, &[[1.0, 2.0, 3.0]]).unwrap();
+        let before = std::fs::read(&path).unwrap();
+        assert!(write_rgb_exr(&path, 2, 2, &[[0.0; 3]]).is_err());
+        assert_eq!(std::fs::read(&path).unwrap(), before);
+        assert_eq!(dir_entries(&dir), ["image.exr"]);
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn corrupt_file_is_an_exr_error() {
+        let dir = temp_dir("corrupt");
+        let path = dir.join("junk.exr");
+        std::fs::write(&path, b"not an exr file at all").unwrap();
+        let err = read_layers_exr(&path).unwrap_err();
+        assert!(err.to_string().contains("junk.exr"), "{err}");
+
+        // A valid file cut short.
+        write_layers_exr(&path, 7, 5, &test_layers(7, 5)).unwrap();
+        let bytes = std::fs::read(&path).unwrap();
+        std::fs::write(&path, &bytes[..bytes.len() / 2]).unwrap();
+        assert!(read_layers_exr(&path).is_err());
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn invalid_input_is_rejected() {
+        let dir = temp_dir("invalid");
+        let path = dir.join("bad.exr");
+        let layer = |name: &str, channels: &[(&str, usize)]| ImageLayer {
+            name: name.into(),
+            channels: channels.iter().map(|&(c, n)| (c.to_owned(), vec![0.0; n])).collect(),
+        };
+        let cases: Vec<(usize, usize, Vec<ImageLayer>)> = vec![
+            (0, 5, vec![layer("a", &[("R", 0)])]),
+            (7, 0, vec![layer("a", &[("R", 0)])]),
+            (7, 5, vec![]),
+            (7, 5, vec![layer("a", &[("R", 35), ("G", 34)])]),
+            (7, 5, vec![layer("a", &[("R", 36)])]),
+            (7, 5, vec![layer("a", &[])]),
+            (7, 5, vec![layer("a", &[("", 35)])]),
+            (7, 5, vec![layer("a", &[("x.R", 35)])]),
+            (7, 5, vec![layer("a", &[("R", 35), ("R", 35)])]),
+            (7, 5, vec![layer("a", &[("R", 35)]), layer("a", &[("G", 35)])]),
+            (7, 5, vec![layer("a\0b", &[("R", 35)])]),
+            (7, 5, vec![layer(&"x".repeat(254), &[("R", 35)])]),
+        ];
+        for (width, height, layers) in cases {
+            let err = write_layers_exr(&path, width, height, &layers).unwrap_err();
+            assert!(matches!(err, ImageIoError::Invalid(_)), "{err:?}");
+            assert!(err.to_string().contains("bad.exr"), "{err}");
+        }
+        // 253 + ".R" = 255 bytes is still fine.
+        write_layers_exr(&path, 7, 5, &[layer(&"x".repeat(253), &[("R", 35)])]).unwrap();
+
+        let err = write_rgb_exr(&path, 2, 2, &[[0.0; 3]; 3]).unwrap_err();
+        assert!(matches!(err, ImageIoError::Invalid(_)), "{err:?}");
+        let err = write_rgb_exr(&path, 0, 2, &[]).unwrap_err();
+        assert!(matches!(err, ImageIoError::Invalid(_)), "{err:?}");
+        let err = write_rgb_exr(&dir, 1, 1, &[[0.0; 3]]).unwrap_err();
+        assert!(err.to_string().contains(&dir.display().to_string()), "{err}");
+        assert_eq!(dir_entries(&dir), ["bad.exr"]);
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+}

@@ -1,0 +1,31 @@
+//! # Tyndall core
+//!
+//! Noise-free single scattering of light in haze and fog, in Rust, free of
+//! Python, USD and Blender. A [`scene::Scene`] (JSON) goes in; [`render::render`]
+//! returns the images (`inscatter`, `transmittance`, `depth`, …) and a
+//! [`report::Report`] with timings, an error estimate and the plan.
+//!
+//! Modules: [`medium`] (phase functions, homogeneous media, Ishiyama's height
+//! fog, Klassen's fog layer), [`spectrum`] (CIE 1931 colour, solar spectrum),
+//! [`geometry`] (Blender cameras, BVH), [`render`], [`io`] (EXR, PNG),
+//! [`numeric`] (stable forms, adaptive quadrature).
+#![warn(missing_docs)]
+// Per-channel loops index several parallel arrays (σ_s, σ_t, E, …) by channel;
+// iterator chains over four zipped arrays read worse than `for c in 0..C`.
+#![allow(clippy::needless_range_loop)]
+
+pub mod geometry;
+pub mod io;
+pub mod medium;
+pub mod numeric;
+pub mod render;
+pub mod report;
+pub mod scene;
+pub mod spectrum;
+
+pub use render::{Images, RenderError, render};
+pub use report::Report;
+pub use scene::{Scene, SceneError};
+
+/// The crate version.
+pub const VERSION: &str = env!("CARGO_PKG_VERSION");

@@ -1,0 +1,133 @@
+//! The report every render returns: timings per stage, the error estimate,
+//! and the plan — what was computed, how, and what the scene did not need.
+
+use serde::{Deserialize, Serialize};
+use std::time::Instant;
+
+/// Wall time of one stage.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Timing {
+    /// Stage name (`plan`, `bvh`, `render`, `write_exr`, …).
+    pub stage: String,
+    /// Wall time, s.
+    pub seconds: f64,
+}
+
+/// Something the renderer computed, and how.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Computed {
+    /// What (e.g. `medium "fog": height fog`).
+    pub what: String,
+    /// How (e.g. `closed form, Ishiyama eqs 22-23`).
+    pub how: String,
+}
+
+/// Something the scene did not need, or that this build does not model, and why.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct LeftOut {
+    /// What was left out.
+    pub what: String,
+    /// Why.
+    pub why: String,
+}
+
+/// What was computed and what was left out.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct Plan {
+    /// `rgb` or `spectral (81 samples, 380-780 nm)`.
+    pub colour_path: String,
+    /// Things computed.
+    pub computed: Vec<Computed>,
+    /// Things left out, with reasons.
+    pub left_out: Vec<LeftOut>,
+}
+
+impl Plan {
+    /// Records a computed item.
+    pub fn computed(&mut self, what: impl Into<String>, how: impl Into<String>) {
+        self.computed.push(Computed {
+            what: what.into(),
+            how: how.into(),
+        });
+    }
+    /// Records a left-out item.
+    pub fn left_out(&mut self, what: impl Into<String>, why: impl Into<String>) {
+        self.left_out.push(LeftOut {
+            what: what.into(),
+            why: why.into(),
+        });
+    }
+}
+
+/// The error estimate of the `inscatter` layer against the exact solution of
+/// the model (not against the real atmosphere).
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct ErrorEstimate {
+    /// Relative tolerance requested for numerically integrated pixels.
+    pub tolerance: f64,
+    /// Largest per-pixel absolute error estimate, W·m⁻²·sr⁻¹ (f64 computation,
+    /// before storage as f32).
+    pub max_abs: f64,
+    /// Largest per-pixel relative error estimate (error / value, pixels with value > 0).
+    pub max_rel: f64,
+    /// Relative error of storing the images as f32 (2⁻²⁴), added by the EXR output.
+    pub f32_storage_rel: f64,
+    /// Pixels solved in closed form.
+    pub pixels_closed_form: u64,
+    /// Pixels integrated numerically (several media overlapping).
+    pub pixels_numeric: u64,
+    /// Numerically integrated pixels whose estimate did not reach the tolerance.
+    pub pixels_not_converged: u64,
+    /// How the estimate was obtained.
+    pub method: String,
+}
+
+/// Counts.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct Stats {
+    /// Pixels rendered.
+    pub pixels: u64,
+    /// View rays that ended on a surface.
+    pub rays_hit_surface: u64,
+    /// View rays that crossed no medium: no integral evaluated.
+    pub rays_without_medium: u64,
+    /// Triangles in the BVH.
+    pub triangles: u64,
+    /// Threads used.
+    pub threads: usize,
+}
+
+/// The whole report.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct Report {
+    /// Tyndall version that rendered.
+    pub tyndall_version: String,
+    /// Image size `[width, height]`.
+    pub resolution: [usize; 2],
+    /// Wall time per stage.
+    pub timings: Vec<Timing>,
+    /// Error estimate.
+    pub error: ErrorEstimate,
+    /// What was computed and left out.
+    pub plan: Plan,
+    /// Counts.
+    pub stats: Stats,
+    /// Anything the user should know (approximations that were applied).
+    pub warnings: Vec<String>,
+}
+
+impl Report {
+    /// Records the time since `start` under `stage` and returns a new start.
+    pub fn time(&mut self, stage: &str, start: Instant) -> Instant {
+        self.timings.push(Timing {
+            stage: stage.into(),
+            seconds: start.elapsed().as_secs_f64(),
+        });
+        Instant::now()
+    }
+
+    /// Pretty JSON.
+    pub fn to_json(&self) -> String {
+        serde_json::to_string_pretty(self).unwrap_or_else(|e| format!("{{\"error\": \"{e}\"}}"))
+    }
+}

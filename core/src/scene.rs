@@ -1,0 +1,1065 @@
+//! The scene description: what Tyndall renders, as serde types (JSON on disk).
+//!
+//! Conventions (see `docs/scene-format.md` for the full table and
+//! `docs/scene.schema.json`, generated from these types):
+//! * SI units: metres, seconds, watts, steradians; wavelengths in nm.
+//! * World frame as in Blender: right-handed, **+Z up**; heights are Z.
+//! * Radiance in W·m⁻²·sr⁻¹ per linear Rec.709 channel (Blender scene linear);
+//!   sun irradiance in W·m⁻² (Blender's sun "Strength").
+//! * Cameras look along their local −Z with +Y up (Blender, USD).
+//!
+//! Loading is strict: unknown fields, missing required fields, wrong types,
+//! non-finite numbers, negative coefficients, zero-length directions and
+//! out-of-range parameters are all rejected with a [`SceneError`] naming the
+//! field path (`media[0].scattering[2]`), never a panic.
+
+use crate::medium::phase::PhaseFunction;
+use crate::spectrum::{self, SPECTRAL_SAMPLES, Spectrum};
+use glam::{DMat3, DMat4, DQuat, DVec3};
+use schemars::JsonSchema;
+use serde::{Deserialize, Serialize};
+use std::fmt;
+use std::path::Path;
+
+/// The scene format version this build reads and writes.
+pub const SCENE_VERSION: u32 = 1;
+
+/// A rejected scene: where (a field path such as `media[0].phase.g`) and why.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[error("{source_name}: {path}: {message}")]
+pub struct SceneError {
+    /// File name or `<string>`.
+    pub source_name: String,
+    /// Field path inside the scene, e.g. `camera.resolution[0]`; `.` for the root.
+    pub path: String,
+    /// What is wrong, with the unit and the allowed range where it applies.
+    pub message: String,
+}
+
+/// A whole scene. JSON root object.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields)]
+pub struct Scene {
+    /// Format version; must be 1.
+    pub version: u32,
+    /// The camera that the images are rendered for.
+    pub camera: Camera,
+    /// Triangle meshes: surfaces that end view rays (occluders, set pieces). Default: none.
+    #[serde(default)]
+    pub meshes: Vec<Mesh>,
+    /// Lights. Default: none.
+    #[serde(default)]
+    pub lights: Vec<Light>,
+    /// Participating media (haze, fog). Default: none (vacuum).
+    #[serde(default)]
+    pub media: Vec<Medium>,
+    /// Output settings. Default: see [`Output`].
+    #[serde(default)]
+    pub output: Output,
+}
+
+/// Camera. JSON: `{"type": "perspective", ...}` or `{"type": "equirectangular", ...}`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
+#[serde(tag = "type", rename_all = "snake_case", deny_unknown_fields)]
+pub enum Camera {
+    /// Blender's perspective camera.
+    Perspective(PerspectiveCamera),
+    /// Full-sphere latitude–longitude camera, mapped as Blender maps an
+    /// equirectangular environment texture.
+    Equirectangular(EquirectangularCamera),
+}
+
+/// How the sensor is fitted to the image (Blender's "Sensor Fit").
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize, JsonSchema)]
+#[serde(rename_all = "snake_case")]
+pub enum SensorFit {
+    /// `sensor_width_mm` spans the larger image dimension (Blender's default).
+    #[default]
+    Auto,
+    /// `sensor_width_mm` spans the image width.
+    Horizontal,
+    /// `sensor_height_mm` spans the image height.
+    Vertical,
+}
+
+/// Blender's perspective camera.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields)]
+pub struct PerspectiveCamera {
+    /// Eye position, m. Required.
+    pub position: [f64; 3],
+    /// Where the camera looks. Required.
+    pub orientation: Orientation,
+    /// Focal length, mm, > 0. Default 50 (Blender).
+    #[serde(default = "default_focal")]
+    pub focal_length_mm: f64,
+    /// Sensor width, mm, > 0. Default 36 (Blender).
+    #[serde(default = "default_sensor_w")]
+    pub sensor_width_mm: f64,
+    /// Sensor height, mm, > 0; used only with `sensor_fit: vertical`. Default 24.
+    #[serde(default = "default_sensor_h")]
+    pub sensor_height_mm: f64,
+    /// Sensor fit. Default `auto`.
+    #[serde(default)]
+    pub sensor_fit: SensorFit,
+    /// Lens shift X in units of the larger image dimension, as Blender. Default 0.
+    #[serde(default)]
+    pub shift_x: f64,
+    /// Lens shift Y in units of the larger image dimension, as Blender. Default 0.
+    #[serde(default)]
+    pub shift_y: f64,
+    /// Image size `[width, height]` in pixels, each 1..=65536. Required.
+    pub resolution: [u32; 2],
+    /// Distance along each view ray where rendering starts, m, ≥ 0. Default 0.
+    #[serde(default)]
+    pub clip_start_m: f64,
+    /// Distance along each view ray where rendering ends, m, > clip_start;
+    /// `null` (default) means infinity.
+    #[serde(default)]
+    pub clip_end_m: Option<f64>,
+}
+
+/// Full-sphere equirectangular camera.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields)]
+pub struct EquirectangularCamera {
+    /// Eye position, m. Required.
+    pub position: [f64; 3],
+    /// Image size `[width, height]`, pixels, each 1..=65536. Required.
+    pub resolution: [u32; 2],
+    /// Distance along each view ray where rendering ends, m; `null` (default) = infinity.
+    #[serde(default)]
+    pub clip_end_m: Option<f64>,
+}
+
+fn default_focal() -> f64 {
+    50.0
+}
+fn default_sensor_w() -> f64 {
+    36.0
+}
+fn default_sensor_h() -> f64 {
+    24.0
+}
+
+/// Camera orientation. JSON: `{"look_at": {"target": [..], "up": [0,0,1]}}` or
+/// `{"quaternion_wxyz": [w, x, y, z]}` (rotation of the camera's local frame,
+/// which looks along −Z with +Y up, into the world; need not be normalised).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
+#[serde(rename_all = "snake_case", deny_unknown_fields)]
+pub enum Orientation {
+    /// Look from the camera position at `target`, with `up` (default +Z) kept upright.
+    LookAt {
+        /// Point looked at, m.
+        target: [f64; 3],
+        /// Up hint, any length > 0, not parallel to the view direction. Default [0,0,1].
+        #[serde(default = "default_up")]
+        up: [f64; 3],
+    },
+    /// Rotation quaternion `[w, x, y, z]`, any non-zero length (normalised on load).
+    QuaternionWxyz([f64; 4]),
+}
+
+fn default_up() -> [f64; 3] {
+    [0.0, 0.0, 1.0]
+}
+
+/// An affine transform: `matrix` (row-major 4×4, last row 0 0 0 1), or
+/// translation · rotation · scale. Default: identity.
+#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields)]
+pub struct Transform {
+    /// Row-major 4×4 matrix (Blender's `matrix_world` rows). Excludes the other fields.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub matrix: Option<[[f64; 4]; 4]>,
+    /// Translation, m. Default [0,0,0].
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub translation: Option<[f64; 3]>,
+    /// Rotation quaternion `[w,x,y,z]`, non-zero. Default identity.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub rotation_wxyz: Option<[f64; 4]>,
+    /// Scale per axis, non-zero. Default [1,1,1].
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub scale: Option<[f64; 3]>,
+}
+
+/// A triangle mesh. Surfaces end view rays; they are not shaded (Tyndall
+/// renders what the medium adds: composite `final = surface × T + L`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields)]
+pub struct Mesh {
+    /// Name, for reports. Default "".
+    #[serde(default)]
+    pub name: String,
+    /// Vertex positions in object space, m.
+    pub positions: Vec<[f64; 3]>,
+    /// Vertex index triples, each < `positions.len()`.
+    pub triangles: Vec<[u32; 3]>,
+    /// Object → world transform. Default identity.
+    #[serde(default)]
+    pub transform: Transform,
+}
+
+/// How a light's colour is given spectrally.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize, JsonSchema)]
+#[serde(rename_all = "snake_case")]
+pub enum LightSpectrum {
+    /// `color` × strength, upsampled linearly (exact round trip) when the
+    /// render is spectral.
+    #[default]
+    Rgb,
+    /// The extraterrestrial solar spectrum, scaled so that its luminance-weighted
+    /// RGB has the given strength; `color` multiplies it.
+    Solar,
+}
+
+/// A light. JSON: `{"type": "sun", ...}` or `{"type": "ambient", ...}`.
+/// Point and spot lights with intensity distributions are reserved for a later
+/// format revision (the `type` tag leaves room for them).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
+#[serde(tag = "type", rename_all = "snake_case", deny_unknown_fields)]
+pub enum Light {
+    /// A directional light (Blender's Sun lamp): parallel rays from `direction_to_sun`.
+    Sun {
+        /// Name for reports and per-light layers. Default "sun".
+        #[serde(default = "default_sun_name")]
+        name: String,
+        /// Unit-less vector pointing from the scene towards the sun, non-zero.
+        direction_to_sun: [f64; 3],
+        /// Linear Rec.709 colour, each ≥ 0. Default [1,1,1].
+        #[serde(default = "default_white")]
+        color: [f64; 3],
+        /// Irradiance on a surface facing the sun, W·m⁻², ≥ 0 (Blender's Strength). Default 1.
+        #[serde(default = "default_one")]
+        strength_w_m2: f64,
+        /// Angular diameter of the disc, degrees, 0..=180. Default 0.526 (Blender).
+        #[serde(default = "default_sun_angle")]
+        angular_diameter_deg: f64,
+        /// Spectral shape. Default `rgb`.
+        #[serde(default)]
+        spectrum: LightSpectrum,
+    },
+    /// Uniform incident radiance from every direction (sky/fill), scattered
+    /// isotropically (Ishiyama eq 11).
+    Ambient {
+        /// Name. Default "ambient".
+        #[serde(default = "default_ambient_name")]
+        name: String,
+        /// Linear Rec.709 colour, each ≥ 0. Default [1,1,1].
+        #[serde(default = "default_white")]
+        color: [f64; 3],
+        /// Radiance, W·m⁻²·sr⁻¹, ≥ 0. Default 1.
+        #[serde(default = "default_one")]
+        radiance: f64,
+    },
+}
+
+fn default_sun_name() -> String {
+    "sun".into()
+}
+fn default_ambient_name() -> String {
+    "ambient".into()
+}
+fn default_white() -> [f64; 3] {
+    [1.0, 1.0, 1.0]
+}
+fn default_one() -> f64 {
+    1.0
+}
+fn default_sun_angle() -> f64 {
+    0.526
+}
+
+/// A coefficient in m⁻¹ that may depend on wavelength. JSON forms:
+/// * a number: grey (the same at every wavelength);
+/// * `[r, g, b]`: per linear Rec.709 channel (rendered in RGB);
+/// * `{"spectrum_nm": [[λ, value], ...]}`: sampled spectrum, λ in nm
+///   increasing, linearly interpolated, held constant outside the samples;
+/// * `{"power_law": {"at_550nm": β, "exponent": 4}}`: β·(550/λ)^exponent
+///   (exponent 4 is Rayleigh, ≈1.3 is Ångström's haze).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
+#[serde(untagged)]
+pub enum Coefficient {
+    /// Grey.
+    Grey(f64),
+    /// Per Rec.709 channel.
+    Rgb([f64; 3]),
+    /// Spectral.
+    Spectral(SpectralCoefficient),
+}
+
+impl Default for Coefficient {
+    fn default() -> Self {
+        Coefficient::Grey(0.0)
+    }
+}
+
+/// Spectral forms of a [`Coefficient`].
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
+#[serde(rename_all = "snake_case", deny_unknown_fields)]
+pub enum SpectralCoefficient {
+    /// Samples `[λ nm, value m⁻¹]`, λ strictly increasing, ≥ 1 sample.
+    SpectrumNm(Vec<[f64; 2]>),
+    /// β·(550 nm/λ)^exponent.
+    PowerLaw {
+        /// Value at 550 nm, m⁻¹, ≥ 0.
+        at_550nm: f64,
+        /// Exponent, finite (4 = Rayleigh).
+        exponent: f64,
+    },
+}
+
+/// Where a homogeneous medium is.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
+#[serde(rename_all = "snake_case", deny_unknown_fields)]
+#[derive(Default)]
+pub enum Bounds {
+    /// Everywhere (Blender's world volume).
+    #[default]
+    World,
+    /// An axis-aligned box (a volume object such as a haze box around a stage).
+    Box {
+        /// Minimum corner, m.
+        min: [f64; 3],
+        /// Maximum corner, m, each component > `min`.
+        max: [f64; 3],
+    },
+}
+
+/// Scattering and absorption of one component of the height fog.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields)]
+pub struct FogComponent {
+    /// Scattering coefficient at the reference height, m⁻¹, ≥ 0.
+    pub scattering: Coefficient,
+    /// Absorption coefficient at the reference height, m⁻¹, ≥ 0. Default 0.
+    #[serde(default)]
+    pub absorption: Coefficient,
+}
+
+/// Mie component of the height fog, with its phase function.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields)]
+pub struct MieComponent {
+    /// Scattering coefficient at the reference height, m⁻¹, ≥ 0.
+    pub scattering: Coefficient,
+    /// Absorption coefficient at the reference height, m⁻¹, ≥ 0. Default 0.
+    #[serde(default)]
+    pub absorption: Coefficient,
+    /// Phase function. Default Cornette–Shanks g = 0.76.
+    #[serde(default = "default_mie_phase")]
+    pub phase: PhaseFunction,
+}
+
+fn default_mie_phase() -> PhaseFunction {
+    PhaseFunction::CornetteShanks { g: 0.76 }
+}
+
+/// Which sun path through the fog layer Klassen's closed form uses.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize, JsonSchema)]
+#[serde(rename_all = "snake_case")]
+pub enum SunPath {
+    /// The exact flat-earth path from the fog top to each scattering point,
+    /// (z_top − z)/sin φ, integrated in closed form (default).
+    #[default]
+    PerPoint,
+    /// Klassen's eq 3.11/3.20: the whole fog thickness (z_top − z_ground)/sin φ
+    /// for every point (his approximation for an eye near the ground).
+    FullLayer,
+}
+
+/// A medium. JSON: `{"type": "homogeneous" | "height_fog" | "fog_layer", ...}`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
+#[serde(tag = "type", rename_all = "snake_case", deny_unknown_fields)]
+pub enum Medium {
+    /// Constant coefficients, in the world or in a box.
+    Homogeneous {
+        /// Name for reports. Default "".
+        #[serde(default)]
+        name: String,
+        /// Scattering coefficient σ_s, m⁻¹, ≥ 0. Required.
+        scattering: Coefficient,
+        /// Absorption coefficient σ_a, m⁻¹, ≥ 0. Default 0.
+        #[serde(default)]
+        absorption: Coefficient,
+        /// Phase function. Default isotropic.
+        #[serde(default)]
+        phase: PhaseFunction,
+        /// Extent. Default `"world"`.
+        #[serde(default)]
+        bounds: Bounds,
+    },
+    /// Ishiyama's exponential height fog: Rayleigh + Mie sharing one scale height.
+    HeightFog {
+        /// Name for reports. Default "".
+        #[serde(default)]
+        name: String,
+        /// Scale height H, m, 1e-3..=1e7. Required.
+        scale_height_m: f64,
+        /// Height where the coefficients apply, m. Default 0.
+        #[serde(default)]
+        reference_height_m: f64,
+        /// Rayleigh component (phase 3/(16π)(1+μ²)). Default none.
+        #[serde(default)]
+        rayleigh: Option<FogComponent>,
+        /// Mie component. Default none.
+        #[serde(default)]
+        mie: Option<MieComponent>,
+    },
+    /// Klassen's sunlit fog layer (flat earth): uniform fog between two heights.
+    FogLayer {
+        /// Name for reports. Default "".
+        #[serde(default)]
+        name: String,
+        /// Ground (bottom of the fog), m. Default 0.
+        #[serde(default)]
+        ground_height_m: f64,
+        /// Top of the fog, m, > ground. Required.
+        top_height_m: f64,
+        /// Fog extinction β_ex,p, m⁻¹, ≥ 0 (15e-3..40e-3 for fog per Klassen). Required.
+        extinction: Coefficient,
+        /// Fraction of extinction that is scattering, 0..=1. Default 1 (Klassen:
+        /// fog in a steady state only scatters).
+        #[serde(default = "default_one")]
+        single_scattering_albedo: f64,
+        /// Molecular extinction inside the layer β_ex,m, m⁻¹, ≥ 0. Default 0.
+        #[serde(default)]
+        air_extinction: Coefficient,
+        /// Phase function of the droplets. Default Nishita hazy.
+        #[serde(default = "default_fog_phase")]
+        phase: PhaseFunction,
+        /// Sun path through the layer. Default `per_point`.
+        #[serde(default)]
+        sun_path: SunPath,
+        /// Below this sun elevation, degrees 0..=90, the direct sun term is replaced
+        /// by the constant fog colour of the ambient light (Klassen §3: at low sun
+        /// no direct light gets through; the flat earth holds to 1 % for fog above
+        /// ≈15°). Default 15.
+        #[serde(default = "default_min_sun")]
+        min_sun_elevation_deg: f64,
+    },
+}
+
+fn default_fog_phase() -> PhaseFunction {
+    PhaseFunction::NishitaHazy
+}
+fn default_min_sun() -> f64 {
+    15.0
+}
+
+/// Output layers.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize, JsonSchema)]
+#[serde(rename_all = "snake_case")]
+pub enum LayerKind {
+    /// In-scattered radiance L, RGB, W·m⁻²·sr⁻¹.
+    Inscatter,
+    /// View-ray transmittance T, RGB, 0..1.
+    Transmittance,
+    /// Distance along the view ray to the first surface, Z, m; 1e10 where none (Blender).
+    Depth,
+    /// Transmittance of sunlight to the surface point, RGB (1 where no sun or no surface).
+    SunTransmittance,
+    /// Estimated absolute error of `inscatter`, RGB, W·m⁻²·sr⁻¹.
+    Error,
+}
+
+/// Spectral or RGB computation.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize, JsonSchema)]
+#[serde(rename_all = "snake_case")]
+pub enum SpectralMode {
+    /// Spectral only when some medium or light needs it (default).
+    #[default]
+    Auto,
+    /// Always spectral (81 samples, 380–780 nm at 5 nm).
+    Always,
+    /// Always RGB; spectral coefficients are reduced to RGB first.
+    Never,
+}
+
+/// Output settings.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields)]
+pub struct Output {
+    /// Layers to write. Default inscatter, transmittance, depth.
+    #[serde(default = "default_layers")]
+    pub layers: Vec<LayerKind>,
+    /// Relative error tolerance of numerically integrated pixels, 1e-12..=0.5. Default 1e-4.
+    #[serde(default = "default_tolerance")]
+    pub tolerance: f64,
+    /// Worker threads, 0 = all cores. Default 0.
+    #[serde(default)]
+    pub threads: usize,
+    /// Spectral or RGB. Default auto.
+    #[serde(default)]
+    pub spectral: SpectralMode,
+}
+
+impl Default for Output {
+    fn default() -> Self {
+        Output {
+            layers: default_layers(),
+            tolerance: default_tolerance(),
+            threads: 0,
+            spectral: SpectralMode::Auto,
+        }
+    }
+}
+
+fn default_layers() -> Vec<LayerKind> {
+    vec![LayerKind::Inscatter, LayerKind::Transmittance, LayerKind::Depth]
+}
+fn default_tolerance() -> f64 {
+    1e-4
+}
+
+// ---------------------------------------------------------------- loading
+
+impl Scene {
+    /// Parses and validates a scene from JSON text; `source_name` names it in errors.
+    pub fn from_json_str(text: &str, source_name: &str) -> Result<Scene, SceneError> {
+        let de = &mut serde_json::Deserializer::from_str(text);
+        let scene: Scene = serde_path_to_error::deserialize(de).map_err(|e| {
+            let path = e.path().to_string();
+            let inner = e.into_inner();
+            SceneError {
+                source_name: source_name.to_string(),
+                path: if path.is_empty() { ".".into() } else { path },
+                message: describe_json_error(&inner),
+            }
+        })?;
+        scene.validate().map_err(|(path, message)| SceneError {
+            source_name: source_name.to_string(),
+            path,
+            message,
+        })?;
+        Ok(scene)
+    }
+
+    /// Reads, parses and validates a JSON scene file.
+    pub fn load(path: &Path) -> Result<Scene, SceneError> {
+        let text = std::fs::read_to_string(path).map_err(|e| SceneError {
+            source_name: path.display().to_string(),
+            path: ".".into(),
+            message: format!("cannot read file: {e}"),
+        })?;
+        Scene::from_json_str(&text, &path.display().to_string())
+    }
+
+    /// Serialises to pretty JSON.
+    pub fn to_json_string(&self) -> String {
+        serde_json::to_string_pretty(self).unwrap_or_else(|e| format!("{{\"error\": \"{e}\"}}"))
+    }
+
+    /// Checks every value; `Err((field path, message))` for the first problem.
+    pub fn validate(&self) -> Result<(), (String, String)> {
+        let mut v = Validator::default();
+        v.check(self);
+        match v.first {
+            Some(e) => Err(e),
+            None => Ok(()),
+        }
+    }
+}
+
+fn describe_json_error(e: &serde_json::Error) -> String {
+    let msg = e.to_string();
+    // serde_json writes "... at line L column C"; keep it, and explain the
+    // untagged-coefficient message, which says nothing useful on its own.
+    if msg.contains("untagged enum Coefficient") {
+        let loc = msg
+            .rsplit_once(" at line ")
+            .map(|(_, l)| format!(" at line {l}"))
+            .unwrap_or_default();
+        return format!(
+            "expected a coefficient in m⁻¹: a number, [r, g, b], {{\"spectrum_nm\": [[nm, value], ...]}} or {{\"power_law\": {{\"at_550nm\": b, \"exponent\": e}}}}{loc}"
+        );
+    }
+    msg
+}
+
+#[derive(Default)]
+struct Validator {
+    path: Vec<String>,
+    first: Option<(String, String)>,
+}
+
+impl Validator {
+    fn at(&self, field: &str) -> String {
+        let mut s = String::new();
+        for p in &self.path {
+            if p.starts_with('[') || s.is_empty() {
+                s.push_str(p);
+            } else {
+                s.push('.');
+                s.push_str(p);
+            }
+        }
+        if field.is_empty() {
+            return if s.is_empty() { ".".into() } else { s };
+        }
+        if field.starts_with('[') || s.is_empty() {
+            format!("{s}{field}")
+        } else {
+            format!("{s}.{field}")
+        }
+    }
+    fn fail(&mut self, field: &str, msg: impl Into<String>) {
+        if self.first.is_none() {
+            self.first = Some((self.at(field), msg.into()));
+        }
+    }
+    fn push(&mut self, p: impl Into<String>) {
+        self.path.push(p.into());
+    }
+    fn pop(&mut self) {
+        self.path.pop();
+    }
+    fn finite(&mut self, field: &str, x: f64) -> bool {
+        if !x.is_finite() {
+            self.fail(field, format!("must be a finite number, got {x}"));
+            return false;
+        }
+        true
+    }
+    fn range(&mut self, field: &str, x: f64, lo: f64, hi: f64, unit: &str) {
+        if self.finite(field, x) && !(x >= lo && x <= hi) {
+            self.fail(field, format!("{x} {unit} is outside the allowed range {lo}..={hi}"));
+        }
+    }
+    fn positive(&mut self, field: &str, x: f64, unit: &str) {
+        if self.finite(field, x) && x <= 0.0 {
+            self.fail(field, format!("must be > 0 {unit}, got {x}"));
+        }
+    }
+    fn non_negative(&mut self, field: &str, x: f64, unit: &str) {
+        if self.finite(field, x) && x < 0.0 {
+            self.fail(field, format!("must be ≥ 0 {unit}, got {x}"));
+        }
+    }
+    fn vec3(&mut self, field: &str, v: [f64; 3]) -> bool {
+        for (i, x) in v.iter().enumerate() {
+            if !self.finite(&format!("{field}[{i}]"), *x) {
+                return false;
+            }
+        }
+        true
+    }
+    fn direction(&mut self, field: &str, v: [f64; 3]) {
+        if self.vec3(field, v) {
+            let l = DVec3::from(v).length();
+            if l.is_nan() || l <= 1e-300 || !l.is_finite() {
+                self.fail(field, "zero-length direction: give a non-zero vector");
+            }
+        }
+    }
+    fn color(&mut self, field: &str, c: [f64; 3]) {
+        for (i, x) in c.iter().enumerate() {
+            self.non_negative(&format!("{field}[{i}]"), *x, "");
+        }
+    }
+    fn resolution(&mut self, r: [u32; 2]) {
+        for (i, x) in r.iter().enumerate() {
+            if *x == 0 || *x > 65536 {
+                self.fail(&format!("resolution[{i}]"), format!("{x} pixels is outside 1..=65536"));
+            }
+        }
+    }
+    fn coefficient(&mut self, field: &str, c: &Coefficient) {
+        match c {
+            Coefficient::Grey(x) => self.non_negative(field, *x, "m⁻¹"),
+            Coefficient::Rgb(v) => {
+                for (i, x) in v.iter().enumerate() {
+                    self.non_negative(&format!("{field}[{i}]"), *x, "m⁻¹");
+                }
+            }
+            Coefficient::Spectral(SpectralCoefficient::SpectrumNm(samples)) => {
+                if samples.is_empty() {
+                    self.fail(&format!("{field}.spectrum_nm"), "needs at least one [nm, value] sample");
+                }
+                let mut last = f64::NEG_INFINITY;
+                for (i, [l, x]) in samples.iter().enumerate() {
+                    let f = format!("{field}.spectrum_nm[{i}]");
+                    if self.finite(&format!("{f}[0]"), *l) && (*l <= last || *l <= 0.0) {
+                        self.fail(
+                            &format!("{f}[0]"),
+                            format!("wavelengths must be > 0 nm and strictly increasing, got {l} after {last}"),
+                        );
+                    }
+                    last = *l;
+                    self.non_negative(&format!("{f}[1]"), *x, "m⁻¹");
+                }
+            }
+            Coefficient::Spectral(SpectralCoefficient::PowerLaw { at_550nm, exponent }) => {
+                self.non_negative(&format!("{field}.power_law.at_550nm"), *at_550nm, "m⁻¹");
+                self.range(&format!("{field}.power_law.exponent"), *exponent, -20.0, 20.0, "");
+            }
+        }
+    }
+    fn phase(&mut self, field: &str, p: &PhaseFunction) {
+        if let Err(m) = p.validate() {
+            self.fail(&format!("{field}.g"), m);
+        }
+    }
+    fn orientation(&mut self, position: [f64; 3], o: &Orientation) {
+        self.push("orientation");
+        match o {
+            Orientation::LookAt { target, up } => {
+                if self.vec3("look_at.target", *target) && self.vec3("look_at.up", *up) {
+                    let fwd = DVec3::from(*target) - DVec3::from(position);
+                    let upv = DVec3::from(*up);
+                    if fwd.length() < 1e-12 {
+                        self.fail(
+                            "look_at.target",
+                            "target coincides with the camera position: zero-length view direction",
+                        );
+                    } else if upv.length() < 1e-300 {
+                        self.fail("look_at.up", "zero-length direction: give a non-zero vector");
+                    } else if fwd.normalize().cross(upv.normalize()).length() < 1e-9 {
+                        self.fail("look_at.up", "up is parallel to the view direction");
+                    }
+                }
+            }
+            Orientation::QuaternionWxyz(q) => self.quaternion("quaternion_wxyz", *q),
+        }
+        self.pop();
+    }
+    fn quaternion(&mut self, field: &str, q: [f64; 4]) {
+        for (i, x) in q.iter().enumerate() {
+            if !self.finite(&format!("{field}[{i}]"), *x) {
+                return;
+            }
+        }
+        let n = q.iter().map(|x| x * x).sum::<f64>().sqrt();
+        if n.is_nan() || n <= 1e-12 || !n.is_finite() {
+            self.fail(field, "zero-length quaternion");
+        }
+    }
+
+    fn check(&mut self, s: &Scene) {
+        if s.version != SCENE_VERSION {
+            self.fail(
+                "version",
+                format!("unsupported version {}; this build reads version {SCENE_VERSION}", s.version),
+            );
+        }
+        self.push("camera");
+        match &s.camera {
+            Camera::Perspective(c) => {
+                self.vec3("position", c.position);
+                self.orientation(c.position, &c.orientation);
+                self.positive("focal_length_mm", c.focal_length_mm, "mm");
+                self.positive("sensor_width_mm", c.sensor_width_mm, "mm");
+                self.positive("sensor_height_mm", c.sensor_height_mm, "mm");
+                self.range("shift_x", c.shift_x, -100.0, 100.0, "");
+                self.range("shift_y", c.shift_y, -100.0, 100.0, "");
+                self.resolution(c.resolution);
+                self.non_negative("clip_start_m", c.clip_start_m, "m");
+                if let Some(e) = c.clip_end_m {
+                    if !e.is_nan() && e <= c.clip_start_m {
+                        self.fail("clip_end_m", format!("must be > clip_start_m ({}), got {e}", c.clip_start_m));
+                    } else if e.is_nan() {
+                        self.fail("clip_end_m", "must be a number > clip_start_m");
+                    }
+                }
+            }
+            Camera::Equirectangular(c) => {
+                self.vec3("position", c.position);
+                self.resolution(c.resolution);
+                if let Some(e) = c.clip_end_m
+                    && (e.is_nan() || e <= 0.0)
+                {
+                    self.fail("clip_end_m", format!("must be > 0 m, got {e}"));
+                }
+            }
+        }
+        self.pop();
+        for (i, m) in s.meshes.iter().enumerate() {
+            self.push(format!("meshes[{i}]"));
+            for (j, p) in m.positions.iter().enumerate() {
+                if !self.vec3(&format!("positions[{j}]"), *p) {
+                    break;
+                }
+            }
+            let n = m.positions.len() as u64;
+            for (j, t) in m.triangles.iter().enumerate() {
+                for (k, ix) in t.iter().enumerate() {
+                    if *ix as u64 >= n {
+                        self.fail(
+                            &format!("triangles[{j}][{k}]"),
+                            format!("vertex index {ix} out of range: the mesh has {n} positions"),
+                        );
+                    }
+                }
+            }
+            self.transform(&m.transform);
+            self.pop();
+        }
+        for (i, l) in s.lights.iter().enumerate() {
+            self.push(format!("lights[{i}]"));
+            match l {
+                Light::Sun {
+                    direction_to_sun,
+                    color,
+                    strength_w_m2,
+                    angular_diameter_deg,
+                    ..
+                } => {
+                    self.direction("direction_to_sun", *direction_to_sun);
+                    self.color("color", *color);
+                    self.non_negative("strength_w_m2", *strength_w_m2, "W·m⁻²");
+                    self.range("angular_diameter_deg", *angular_diameter_deg, 0.0, 180.0, "degrees");
+                }
+                Light::Ambient { color, radiance, .. } => {
+                    self.color("color", *color);
+                    self.non_negative("radiance", *radiance, "W·m⁻²·sr⁻¹");
+                }
+            }
+            self.pop();
+        }
+        for (i, m) in s.media.iter().enumerate() {
+            self.push(format!("media[{i}]"));
+            match m {
+                Medium::Homogeneous {
+                    scattering,
+                    absorption,
+                    phase,
+                    bounds,
+                    ..
+                } => {
+                    self.coefficient("scattering", scattering);
+                    self.coefficient("absorption", absorption);
+                    self.phase("phase", phase);
+                    if let Bounds::Box { min, max } = bounds
+                        && self.vec3("bounds.box.min", *min)
+                        && self.vec3("bounds.box.max", *max)
+                    {
+                        for k in 0..3 {
+                            if max[k] <= min[k] {
+                                self.fail(
+                                    &format!("bounds.box.max[{k}]"),
+                                    format!("must be > min[{k}] = {}, got {}", min[k], max[k]),
+                                );
+                            }
+                        }
+                    }
+                }
+                Medium::HeightFog {
+                    scale_height_m,
+                    reference_height_m,
+                    rayleigh,
+                    mie,
+                    ..
+                } => {
+                    self.range("scale_height_m", *scale_height_m, 1e-3, 1e7, "m");
+                    self.range("reference_height_m", *reference_height_m, -1e7, 1e7, "m");
+                    if let Some(r) = rayleigh {
+                        self.coefficient("rayleigh.scattering", &r.scattering);
+                        self.coefficient("rayleigh.absorption", &r.absorption);
+                    }
+                    if let Some(m) = mie {
+                        self.coefficient("mie.scattering", &m.scattering);
+                        self.coefficient("mie.absorption", &m.absorption);
+                        self.phase("mie.phase", &m.phase);
+                    }
+                }
+                Medium::FogLayer {
+                    ground_height_m,
+                    top_height_m,
+                    extinction,
+                    single_scattering_albedo,
+                    air_extinction,
+                    phase,
+                    min_sun_elevation_deg,
+                    ..
+                } => {
+                    self.range("ground_height_m", *ground_height_m, -1e7, 1e7, "m");
+                    if self.finite("top_height_m", *top_height_m) && top_height_m <= ground_height_m {
+                        self.fail(
+                            "top_height_m",
+                            format!("must be > ground_height_m ({ground_height_m}), got {top_height_m}"),
+                        );
+                    }
+                    self.coefficient("extinction", extinction);
+                    self.range("single_scattering_albedo", *single_scattering_albedo, 0.0, 1.0, "");
+                    self.coefficient("air_extinction", air_extinction);
+                    self.phase("phase", phase);
+                    self.range("min_sun_elevation_deg", *min_sun_elevation_deg, 0.0, 90.0, "degrees");
+                }
+            }
+            self.pop();
+        }
+        self.push("output");
+        self.range("tolerance", s.output.tolerance, 1e-12, 0.5, "");
+        if s.output.threads > 4096 {
+            self.fail("threads", format!("{} threads is more than 4096", s.output.threads));
+        }
+        self.pop();
+    }
+
+    fn transform(&mut self, t: &Transform) {
+        self.push("transform");
+        if let Some(m) = t.matrix {
+            if t.translation.is_some() || t.rotation_wxyz.is_some() || t.scale.is_some() {
+                self.fail("matrix", "give either matrix or translation/rotation_wxyz/scale, not both");
+            }
+            for (r, row) in m.iter().enumerate() {
+                for (c, x) in row.iter().enumerate() {
+                    self.finite(&format!("matrix[{r}][{c}]"), *x);
+                }
+            }
+            if m[3] != [0.0, 0.0, 0.0, 1.0] {
+                self.fail("matrix[3]", "the last row of an affine transform must be [0, 0, 0, 1]");
+            }
+            let m3 = DMat3::from_cols_array_2d(&[
+                [m[0][0], m[1][0], m[2][0]],
+                [m[0][1], m[1][1], m[2][1]],
+                [m[0][2], m[1][2], m[2][2]],
+            ]);
+            if m3.determinant().abs() < 1e-300 {
+                self.fail("matrix", "singular matrix (zero scale)");
+            }
+        }
+        if let Some(v) = t.translation {
+            self.vec3("translation", v);
+        }
+        if let Some(q) = t.rotation_wxyz {
+            self.quaternion("rotation_wxyz", q);
+        }
+        if let Some(s) = t.scale
+            && self.vec3("scale", s)
+            && s.contains(&0.0)
+        {
+            self.fail("scale", "scale components must be non-zero");
+        }
+        self.pop();
+    }
+}
+
+// ---------------------------------------------------------------- helpers for the renderer
+
+impl Transform {
+    /// The object → world matrix.
+    pub fn to_matrix(&self) -> DMat4 {
+        if let Some(m) = self.matrix {
+            // Row-major in JSON, column-major in glam.
+            return DMat4::from_cols_array_2d(&m).transpose();
+        }
+        let t = DVec3::from(self.translation.unwrap_or([0.0; 3]));
+        let r = self.rotation_wxyz.map(quat_wxyz).unwrap_or(DQuat::IDENTITY);
+        let s = DVec3::from(self.scale.unwrap_or([1.0; 3]));
+        DMat4::from_scale_rotation_translation(s, r, t)
+    }
+}
+
+/// `[w, x, y, z]` → normalised quaternion.
+pub fn quat_wxyz(q: [f64; 4]) -> DQuat {
+    DQuat::from_xyzw(q[1], q[2], q[3], q[0]).normalize()
+}
+
+impl Coefficient {
+    /// Value at wavelength `lambda_nm`, m⁻¹; RGB coefficients have no spectrum
+    /// and return `None`.
+    pub fn at_wavelength(&self, lambda_nm: f64) -> Option<f64> {
+        match self {
+            Coefficient::Grey(x) => Some(*x),
+            Coefficient::Rgb(_) => None,
+            Coefficient::Spectral(SpectralCoefficient::PowerLaw { at_550nm, exponent }) => {
+                Some(at_550nm * (550.0 / lambda_nm).powf(*exponent))
+            }
+            Coefficient::Spectral(SpectralCoefficient::SpectrumNm(s)) => {
+                let first = s.first()?;
+                let last = s.last()?;
+                if lambda_nm <= first[0] {
+                    return Some(first[1]);
+                }
+                if lambda_nm >= last[0] {
+                    return Some(last[1]);
+                }
+                let i = s.partition_point(|p| p[0] <= lambda_nm);
+                let (a, b) = (s[i - 1], s[i]);
+                let t = (lambda_nm - a[0]) / (b[0] - a[0]);
+                Some(a[1] + t * (b[1] - a[1]))
+            }
+        }
+    }
+
+    /// Whether the value depends on wavelength (grey and equal-RGB do not).
+    pub fn is_wavelength_dependent(&self) -> bool {
+        match self {
+            Coefficient::Grey(_) => false,
+            Coefficient::Rgb(v) => !(v[0] == v[1] && v[1] == v[2]),
+            Coefficient::Spectral(_) => match self.sampled() {
+                Some(s) => !spectrum::is_grey(&s, 1e-12),
+                None => true,
+            },
+        }
+    }
+
+    /// Whether the coefficient is given spectrally (needs the spectral path to be exact).
+    pub fn is_spectral(&self) -> bool {
+        matches!(self, Coefficient::Spectral(_)) && self.is_wavelength_dependent()
+    }
+
+    /// Sampled on the spectral grid; `None` for RGB coefficients.
+    pub fn sampled(&self) -> Option<Spectrum> {
+        let wl = spectrum::wavelengths_nm();
+        let mut out = [0.0; SPECTRAL_SAMPLES];
+        for (o, l) in out.iter_mut().zip(wl.iter()) {
+            *o = self.at_wavelength(*l)?;
+        }
+        Some(out)
+    }
+
+    /// Per Rec.709 channel. Spectral coefficients are reduced with the
+    /// non-negative channel weights of [`spectrum::channel_weights`] (an
+    /// approximation, reported when used).
+    pub fn rgb(&self) -> [f64; 3] {
+        match self {
+            Coefficient::Grey(x) => [*x; 3],
+            Coefficient::Rgb(v) => *v,
+            Coefficient::Spectral(_) => {
+                let s = self.sampled().unwrap_or([0.0; SPECTRAL_SAMPLES]);
+                let w = spectrum::channel_weights();
+                let mut out = [0.0; 3];
+                for c in 0..3 {
+                    out[c] = s.iter().zip(w[c].iter()).map(|(a, b)| a * b).sum();
+                }
+                out
+            }
+        }
+    }
+
+    /// Per spectral sample. RGB coefficients are upsampled with the linear
+    /// [`spectrum::rec709_to_spectrum`] and clamped at 0 (reported when used).
+    pub fn spectral(&self) -> Spectrum {
+        match self.sampled() {
+            Some(s) => s,
+            None => {
+                let mut s = spectrum::rec709_to_spectrum(self.rgb());
+                for x in s.iter_mut() {
+                    *x = x.max(0.0);
+                }
+                s
+            }
+        }
+    }
+}
+
+impl fmt::Display for LayerKind {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        let s = match self {
+            LayerKind::Inscatter => "inscatter",
+            LayerKind::Transmittance => "transmittance",
+            LayerKind::Depth => "depth",
+            LayerKind::SunTransmittance => "sun_transmittance",
+            LayerKind::Error => "error",
+        };
+        f.write_str(s)
+    }
+}
+
+/// JSON Schema of the scene format (draft 2020-12), generated from these types.
+pub fn json_schema() -> String {
+    let schema = schemars::schema_for!(Scene);
+    serde_json::to_string_pretty(&schema).unwrap_or_default()
+}
