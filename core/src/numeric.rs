@@ -51,6 +51,21 @@ pub fn integral_exp_neg(a: f64, x: f64) -> f64 {
     x * one_minus_exp_neg_over(a * x)
 }
 
+/// `(e^{−τ}, 1 − e^{−τ})` with one transcendental call and no cancellation:
+/// for `τ < 0.7` both come from `expm1` (so `1 − T` keeps full relative
+/// precision for optical depths of 1e-9); for larger `τ`, `T < 0.5` and
+/// `1 − T` loses at most one bit. `τ = ∞` gives `(0, 1)`.
+#[inline]
+pub fn transmittance_pair(tau: f64) -> (f64, f64) {
+    if tau < 0.7 {
+        let m = (-tau).exp_m1();
+        (1.0 + m, -m)
+    } else {
+        let t = (-tau).exp();
+        (t, 1.0 - t)
+    }
+}
+
 /// Machine epsilon of `f64`, used by error bounds of closed forms.
 pub const EPS: f64 = f64::EPSILON;
 

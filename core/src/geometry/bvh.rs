@@ -47,14 +47,20 @@
 //!   `mul_add` rounding errors, which keeps the antisymmetry. Edges are
 //!   inclusive (a ray exactly on an edge hits), back faces are not culled, and a
 //!   triangle seen exactly edge-on (determinant 0) is not hit.
-//! * **Degenerate triangles.** A triangle with a non-finite vertex, or whose
-//!   edge cross product is zero or lost in rounding (`|e₁ × e₂| ≤ 2^-46·|e₁||e₂|`,
-//!   evaluated after scaling so it cannot overflow), is left out of the tree:
-//!   it is never hit and never panics. It still counts in
-//!   [`Bvh::triangle_count`] and is still returned by [`Bvh::triangle`].
+//! * **Degenerate triangles.** A triangle with a non-finite vertex or edge
+//!   vector, or whose edge cross product is zero or lost in rounding
+//!   (`|e₁ × e₂| ≤ 2^-46·|e₁||e₂|`, evaluated after scaling so it cannot
+//!   overflow), is left out of the tree: it is never hit and never panics. It
+//!   still counts in [`Bvh::triangle_count`] and is still returned by
+//!   [`Bvh::triangle`].
 //!
 //! `dir` need not be unit length: `t` is in units of `|dir|`, i.e. the hit point
 //! is `origin + t · dir`.
+//!
+//! **Range.** The edge functions are products of two coordinates and `t` of
+//! three, so vertex coordinates relative to the ray origin (and `dir`'s
+//! components relative to each other) should stay within about `1e100`; far
+//! beyond that they overflow to ∞/NaN, which gives a miss, never a panic.
 //!
 //! # Why not an existing crate
 //!
@@ -65,7 +71,7 @@
 //! `f64` `DVec3` rays with `t_min`/`t_max` closest and any hit, so this module
 //! is written here (std + `glam` only).
 
-use glam::DVec3;
+use glam::{BVec3, DVec3};
 
 /// Largest number of triangles in one leaf.
 pub const MAX_LEAF: usize = 4;
@@ -76,7 +82,7 @@ const BINS: usize = 16;
 const COST_TRAVERSAL: f64 = 1.0;
 /// Relative cost of one triangle test in the SAH.
 const COST_INTERSECT: f64 = 1.5;
-/// Depth below which nodes are split at the object median (bounds the depth).
+/// Depth from which nodes are split at the object median (bounds the depth).
 const MAX_SAH_DEPTH: u32 = 64;
 /// Traversal stack size; the tree is at most `MAX_SAH_DEPTH + 32` deep.
 const STACK_SIZE: usize = 128;
@@ -95,13 +101,15 @@ pub struct Triangle {
 
 impl Triangle {
     /// A triangle from three vertices.
+    #[must_use]
     pub fn new(a: DVec3, b: DVec3, c: DVec3) -> Self {
         Self { v: [a, b, c] }
     }
 
-    /// Whether the triangle can never be hit: a vertex is not finite, or the
-    /// area is zero or below rounding (`|e₁ × e₂| ≤ 2^-46·|e₁||e₂|`, i.e. the
-    /// vertices are collinear to within about 1e-14 rad).
+    /// Whether the triangle can never be hit: a vertex or an edge vector is not
+    /// finite, or the area is zero or below rounding: `|e₁ × e₂| ≤ 2^-46·|e₁||e₂|`,
+    /// i.e. the vertices are collinear to within about 1e-14 rad.
+    #[must_use]
     pub fn is_degenerate(&self) -> bool {
         let [a, b, c] = self.v;
         if !(a.is_finite() && b.is_finite() && c.is_finite()) {
@@ -202,9 +210,10 @@ impl Bvh {
     ///
     /// # Panics
     ///
-    /// If there are more than `u32::MAX` triangles.
+    /// If there are 2³¹ triangles or more (node and triangle indices are `u32`).
+    #[must_use]
     pub fn build(triangles: Vec<Triangle>) -> Bvh {
-        assert!(u32::try_from(triangles.len()).is_ok(), "Bvh::build: more than u32::MAX triangles");
+        assert!(triangles.len() < 1 << 31, "Bvh::build: 2^31 triangles or more");
         let mut prims: Vec<Prim> = triangles
             .iter()
             .enumerate()
@@ -216,7 +225,7 @@ impl Bvh {
                 Prim {
                     min,
                     max,
-                    centroid: 0.5 * (min + max),
+                    centroid: 0.5 * min + 0.5 * max, // no overflow near f64::MAX
                     id: i as u32,
                 }
             })
@@ -273,6 +282,7 @@ impl Bvh {
     }
 
     /// Number of triangles given to [`Bvh::build`], degenerate ones included.
+    #[must_use]
     pub fn triangle_count(&self) -> usize {
         self.triangles.len()
     }
@@ -283,12 +293,14 @@ impl Bvh {
     /// # Panics
     ///
     /// If `i >= self.triangle_count()`.
+    #[must_use]
     pub fn triangle(&self, i: u32) -> &Triangle {
         &self.triangles[i as usize]
     }
 
     /// Axis-aligned bounds `(min, max)` of the triangles that can be hit
     /// (degenerate ones excluded); `None` when there are none.
+    #[must_use]
     pub fn bounds(&self) -> Option<(DVec3, DVec3)> {
         self.nodes.first().map(|n| (n.bounds[0], n.bounds[1]))
     }
@@ -300,6 +312,7 @@ impl Bvh {
     /// or non-finite `dir`, a non-finite `origin`, or `t_min > t_max` (or NaN).
     /// When several triangles are hit at the same `t` (a shared edge), any one
     /// of them is reported.
+    #[must_use]
     pub fn closest_hit(&self, origin: DVec3, dir: DVec3, t_min: f64, t_max: f64) -> Option<RayHit> {
         let ray = RayData::new(origin, dir, t_min, t_max)?;
         let nodes = &self.nodes[..];
@@ -327,7 +340,7 @@ impl Bvh {
                 let hr = ray.enter(&nodes[left + 1], t_min, t_hi);
                 match (hl, hr) {
                     (Some(tl), Some(tr)) => {
-                        let (near, far, t_far) = if tl > tr { (left, left + 1, tr) } else { (left + 1, left, tl) };
+                        let (near, far, t_far) = if tl <= tr { (left, left + 1, tr) } else { (left + 1, left, tl) };
                         stack_node[sp] = far as u32;
                         stack_t[sp] = t_far;
                         sp += 1;
@@ -369,6 +382,7 @@ impl Bvh {
     ///
     /// Same conventions as [`Bvh::closest_hit`], whose result is `Some` exactly
     /// when this is `true`.
+    #[must_use]
     pub fn any_hit(&self, origin: DVec3, dir: DVec3, t_min: f64, t_max: f64) -> bool {
         let Some(ray) = RayData::new(origin, dir, t_min, t_max) else {
             return false;
@@ -429,14 +443,16 @@ fn split(prims: &mut [Prim], bounds: &Aabb, cbounds: &Aabb, depth: u32) -> Optio
     }
     let extent = cbounds.max - cbounds.min;
     let widest = extent.max_position();
-    if depth >= MAX_SAH_DEPTH || !(extent[widest] > 0.0) {
+    // Centroids and bounds are finite (degenerate triangles are excluded), so
+    // `extent` is never NaN.
+    if depth >= MAX_SAH_DEPTH || extent[widest] <= 0.0 {
         return median_split(prims, widest);
     }
 
     // Binned SAH over the three axes: (cost, axis, last bin on the left).
     let mut best: Option<(f64, usize, usize)> = None;
     for axis in 0..3 {
-        if !(extent[axis] > 0.0) {
+        if extent[axis] <= 0.0 {
             continue;
         }
         let lo = cbounds.min[axis];
@@ -520,8 +536,8 @@ struct RayData {
     origin: DVec3,
     /// `1 / dir`, ±∞ for zero components.
     inv_dir: DVec3,
-    /// Per axis, 1 if the direction's sign bit is set (the near plane is `max`).
-    sign: [usize; 3],
+    /// Per axis, whether the direction's sign bit is set (the entry plane is `max`).
+    neg: BVec3,
     /// Axes permuted so that `kz` is the dominant direction component.
     kx: usize,
     ky: usize,
@@ -547,11 +563,10 @@ impl RayData {
         if dir[kz] < 0.0 {
             std::mem::swap(&mut kx, &mut ky);
         }
-        let sign = |x: f64| usize::from(x.is_sign_negative());
         Some(RayData {
             origin,
             inv_dir: dir.recip(),
-            sign: [sign(dir.x), sign(dir.y), sign(dir.z)],
+            neg: BVec3::new(dir.x.is_sign_negative(), dir.y.is_sign_negative(), dir.z.is_sign_negative()),
             kx,
             ky,
             kz,
@@ -565,19 +580,13 @@ impl RayData {
     /// clipped to `[t_lo, t_hi]`, or `None` when the clipped interval is empty.
     #[inline]
     fn enter(&self, node: &Node, t_lo: f64, t_hi: f64) -> Option<f64> {
-        let b = &node.bounds;
-        let o = self.origin;
-        let inv = self.inv_dir;
-        let [sx, sy, sz] = self.sign;
-        // Entry/exit distances per axis. NaN (0·∞) only when the origin lies on a
-        // slab plane and the direction is parallel to it: `f64::max`/`min`
-        // ignore NaN, so such a plane does not constrain the interval.
-        let nx = (b[sx].x - o.x) * inv.x;
-        let ny = (b[sy].y - o.y) * inv.y;
-        let nz = (b[sz].z - o.z) * inv.z;
-        let fx = (b[1 - sx].x - o.x) * inv.x;
-        let fy = (b[1 - sy].y - o.y) * inv.y;
-        let fz = (b[1 - sz].z - o.z) * inv.z;
+        let [min, max] = node.bounds;
+        // Entry/exit planes per axis by the direction's sign bit. NaN (0·∞) only
+        // when the origin lies on a slab plane and the direction is parallel to
+        // it: `f64::max`/`min` ignore NaN, so such a plane does not constrain.
+        let tn = (DVec3::select(self.neg, max, min) - self.origin) * self.inv_dir;
+        let tf = (DVec3::select(self.neg, min, max) - self.origin) * self.inv_dir;
+        let (nx, ny, nz, fx, fy, fz) = (tn.x, tn.y, tn.z, tf.x, tf.y, tf.z);
         let near = f64::NEG_INFINITY.max(nx).max(ny).max(nz);
         let far = f64::INFINITY.min(fx).min(fy).min(fz);
         // Widen against rounding: near towards −∞, far towards +∞.
@@ -1036,6 +1045,52 @@ mod tests {
             for _ in 0..2000 {
                 let d = DVec3::new(rnd() - 0.5, rnd() - 0.5, rnd() - 0.5);
                 assert!(bvh.closest_hit(o, d, 0.0, f64::INFINITY).is_some(), "random ray escaped");
+            }
+        }
+    }
+
+    #[test]
+    fn exact_fallback_signs_products_that_round_equal() {
+        // fl(p·q) == fl(r·s) but p·q − r·s = 2^-60 exactly.
+        let (p, q, r, s) = (1.0 + 2f64.powi(-30), 1.0 + 2f64.powi(-30), 1.0 + 2f64.powi(-29), 1.0);
+        assert_eq!(p * q - r * s, 0.0);
+        assert_eq!(exact_zero_diff(p, q, r, s), 2f64.powi(-60));
+        // Swapping the products negates exactly (what keeps shared edges consistent).
+        assert_eq!(exact_zero_diff(r, s, p, q), -2f64.powi(-60));
+        assert_eq!(exact_zero_diff(q, p, s, r), 2f64.powi(-60));
+        assert_eq!(exact_zero_diff(2.0, 3.0, 3.0, 2.0), 0.0);
+    }
+
+    #[test]
+    fn extreme_inputs_do_not_panic() {
+        // Within the documented range of 1e100, and beyond it (no hit, no panic).
+        let big = 1e100;
+        let mut tris = vec![
+            tri([f64::NAN, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]),
+            tri([-big, -big, 1.0], [big, -big, 1.0], [0.0, big, 1.0]),
+            tri([f64::MAX, 0.0, 2.0], [-f64::MAX, 0.0, 2.0], [0.0, f64::MAX, 2.0]),
+            tri([0.0, 0.0, 3.0], [1e-300, 0.0, 3.0], [0.0, 1e-300, 3.0]),
+            tri([-1e307, -1e307, 4.0], [1e307, -1e307, 4.0], [0.0, 1e307, 4.0]),
+        ];
+        tris.extend(std::iter::repeat_n(tri([-1.0, -1.0, 5.0], [1.0, -1.0, 5.0], [0.0, 1.0, 5.0]), 40));
+        let bvh = Bvh::build(tris);
+        assert_eq!(bvh.triangle_count(), 45);
+        assert!(bvh.triangle(2).is_degenerate()); // its edge vectors overflow
+        let hit = bvh.closest_hit(DVec3::ZERO, DVec3::Z, 0.0, f64::INFINITY).unwrap();
+        assert_eq!((hit.triangle, hit.t), (1, 1.0));
+        let hit = bvh.closest_hit(DVec3::new(0.0, 0.0, 2.5), DVec3::Z, 0.0, f64::INFINITY).unwrap();
+        // The f64::MAX triangle is degenerate and the 1e307 one overflows: z = 5 is hit.
+        assert_eq!(hit.t, 2.5);
+        assert!(hit.triangle >= 5);
+        for d in [
+            DVec3::X,
+            DVec3::new(1e-300, 0.0, 1.0),
+            DVec3::splat(1e300),
+            DVec3::new(-1e-310, 1e-310, 0.0),
+        ] {
+            for o in [DVec3::ZERO, DVec3::splat(-1e306), DVec3::new(0.0, 0.0, 4.0)] {
+                let _ = bvh.closest_hit(o, d, 0.0, f64::INFINITY);
+                let _ = bvh.any_hit(o, d, f64::NEG_INFINITY, f64::INFINITY);
             }
         }
     }

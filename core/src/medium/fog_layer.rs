@@ -38,7 +38,7 @@
 //! (never `0/0`).
 
 use super::phase::PhaseFunction;
-use super::{LightSet, RayResult, ViewRay, rounding_bound};
+use super::{LightSet, RayResult, ViewRay, rounding_bound, rounding_rel};
 use crate::numeric::{integral_exp_neg, one_minus_exp_neg};
 use crate::scene::SunPath;
 use glam::DVec3;
@@ -194,6 +194,7 @@ impl<const C: usize> FogLayer<C> {
         for c in 0..C {
             r.error[c] = rounding_bound(r.inscatter[c], 64.0);
         }
+        r.rel_bound = rounding_rel(64.0);
         r
     }
 }

@@ -27,7 +27,7 @@
 //! quantisation (6e-8) of the output images.
 
 use super::phase::PhaseFunction;
-use super::{LightSet, RayResult, ViewRay, exp_neg, rounding_bound};
+use super::{LightSet, RayResult, ViewRay, rounding_bound, rounding_rel};
 use glam::DVec3;
 
 /// Height fog with coefficients resolved to `C` channels.
@@ -69,11 +69,19 @@ impl<const C: usize> HeightFog<C> {
         }
         if s.is_infinite() {
             if dir.z > 0.0 {
-                return (ln_rho0 + (h / dir.z).ln()).exp();
+                return if ln_rho0 < 700.0 {
+                    ln_rho0.exp() * (h / dir.z)
+                } else {
+                    (ln_rho0 + (h / dir.z).ln()).exp()
+                };
             }
             return f64::INFINITY;
         }
         let x = dir.z * s / h;
+        if x >= -1.0 && ln_rho0 < 700.0 {
+            // Fast path, no overflow possible: one exp and one expm1.
+            return ln_rho0.exp() * s * crate::numeric::one_minus_exp_neg_over(x);
+        }
         (ln_rho0 + s.ln() + ln_exprel(x)).exp()
     }
 
@@ -117,14 +125,15 @@ impl<const C: usize> HeightFog<C> {
     pub fn closed_form(&self, ray: &ViewRay, lights: &LightSet<C>) -> RayResult<C> {
         let g = self.geometric_factor(ray.origin, ray.dir, ray.s_max);
         let tau = self.tau(g);
-        let t = exp_neg(tau);
         let j = self.source_at_reference(ray.dir, lights);
+        let mut t = [1.0; C];
         let mut inscatter = [0.0; C];
         let mut error = [0.0; C];
         for c in 0..C {
+            let (tc, one_minus_t) = crate::numeric::transmittance_pair(tau[c]);
+            t[c] = tc;
             let bt = self.extinction[c];
             if bt > 0.0 && j[c] != 0.0 {
-                let one_minus_t = crate::numeric::one_minus_exp_neg(tau[c]);
                 inscatter[c] = j[c] / bt * one_minus_t;
                 error[c] = rounding_bound(inscatter[c], 32.0);
             }
@@ -134,6 +143,7 @@ impl<const C: usize> HeightFog<C> {
             transmittance: t,
             sun_transmittance: [1.0; C],
             error,
+            rel_bound: rounding_rel(32.0),
         }
     }
 }

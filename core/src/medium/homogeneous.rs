@@ -21,7 +21,7 @@
 //! Error: closed form; rounding bound ≈ 32 ε relative per piece.
 
 use super::phase::PhaseFunction;
-use super::{LightSet, RayResult, ViewRay, exp_neg, rounding_bound};
+use super::{LightSet, RayResult, ViewRay, exp_neg, rounding_bound, rounding_rel};
 use crate::numeric::{integral_exp_neg, one_minus_exp_neg};
 use glam::DVec3;
 
@@ -170,6 +170,7 @@ impl<const C: usize> Homogeneous<C> {
         for c in 0..C {
             r.error[c] = rounding_bound(r.inscatter[c], 32.0 * (1.0 + lights.suns.len() as f64 * 3.0));
         }
+        r.rel_bound = rounding_rel(32.0 * (1.0 + lights.suns.len() as f64 * 3.0));
         r
     }
 

@@ -57,6 +57,8 @@ pub struct RayResult<const C: usize> {
     pub sun_transmittance: [f64; C],
     /// Absolute error bound on `inscatter` from floating-point rounding of the closed form.
     pub error: [f64; C],
+    /// The same bound relative to `inscatter` (closed forms: a constant multiple of ε).
+    pub rel_bound: f64,
 }
 
 impl<const C: usize> RayResult<C> {
@@ -67,6 +69,7 @@ impl<const C: usize> RayResult<C> {
             transmittance: [1.0; C],
             sun_transmittance: [1.0; C],
             error: [0.0; C],
+            rel_bound: 0.0,
         }
     }
 }
@@ -150,4 +153,10 @@ pub(crate) fn exp_neg<const C: usize>(x: [f64; C]) -> [f64; C] {
 #[inline]
 pub(crate) fn rounding_bound(value: f64, ops: f64) -> f64 {
     value.abs() * ops * crate::numeric::EPS
+}
+
+/// The relative form of [`rounding_bound`].
+#[inline]
+pub(crate) fn rounding_rel(ops: f64) -> f64 {
+    ops * crate::numeric::EPS
 }

@@ -677,6 +677,7 @@ fn integrate_media<const C: usize>(
             transmittance,
             sun_transmittance: [1.0; C],
             error,
+            rel_bound: 0.0,
         },
         converged,
     )
@@ -709,14 +710,17 @@ fn render_channels<const C: usize>(scene: &Scene, report: &mut Report, progress:
     let (w, h) = (cam.width, cam.height);
     let n = w * h;
     let want = |k: LayerKind| scene.output.layers.contains(&k);
+    // Layers not requested get one dummy element per row instead of a full buffer.
+    let (want_sun_t, want_error) = (want(LayerKind::SunTransmittance), want(LayerKind::Error));
     let mut inscatter = vec![[0f32; 3]; n];
     let mut transmittance = vec![[1f32; 3]; n];
     let mut depth = vec![DEPTH_NO_HIT; n];
-    let mut sun_t = vec![[1f32; 3]; n];
-    let mut error = vec![[0f32; 3]; n];
+    let mut sun_t = vec![[1f32; 3]; if want_sun_t { n } else { h }];
+    let mut error = vec![[0f32; 3]; if want_error { n } else { h }];
+    let (sun_chunk, err_chunk) = (if want_sun_t { w } else { 1 }, if want_error { w } else { 1 });
     let done = AtomicUsize::new(0);
     let (n_hit, n_vac, n_num, n_unconv) = (AtomicU64::new(0), AtomicU64::new(0), AtomicU64::new(0), AtomicU64::new(0));
-    let max_abs = std::sync::Mutex::new((0.0f64, 0.0f64));
+    let max_err = std::sync::Mutex::new((0.0f64, 0.0f64));
     let spectral = C != 3;
     let abs_weights = if spectral { Some(abs_rgb_weights()) } else { None };
     let to_rgb = |v: &[f64; C]| -> [f64; 3] {
@@ -754,8 +758,8 @@ fn render_channels<const C: usize>(scene: &Scene, report: &mut Report, progress:
         .par_chunks_mut(w)
         .zip(transmittance.par_chunks_mut(w))
         .zip(depth.par_chunks_mut(w))
-        .zip(sun_t.par_chunks_mut(w))
-        .zip(error.par_chunks_mut(w))
+        .zip(sun_t.par_chunks_mut(sun_chunk))
+        .zip(error.par_chunks_mut(err_chunk))
         .enumerate()
         .for_each(|(row, ((((l_row, t_row), d_row), s_row), e_row))| {
             let (mut hits, mut vac, mut num, mut unconv) = (0u64, 0u64, 0u64, 0u64);
@@ -763,19 +767,24 @@ fn render_channels<const C: usize>(scene: &Scene, report: &mut Report, progress:
             for col in 0..w {
                 let p = shade_pixel(&cam, bvh.as_ref(), &media, &lights, col as f64 + 0.5, row as f64 + 0.5, tolerance);
                 let l = to_rgb(&p.result.inscatter);
-                let tt = t_to_rgb(&p.result.transmittance);
-                let st = t_to_rgb(&p.result.sun_transmittance);
                 let e = err_to_rgb(&p.result.error);
+                // Relative error: closed forms carry their rounding bound as a
+                // relative constant; only numeric pixels need a division.
+                row_rel = row_rel.max(p.result.rel_bound);
                 for c in 0..3 {
                     row_abs = row_abs.max(e[c]);
-                    if l[c].abs() > 0.0 {
+                    if p.numeric.is_some() && l[c].abs() > 0.0 {
                         row_rel = row_rel.max(e[c] / l[c].abs());
                     }
                 }
                 l_row[col] = l.map(|v| v as f32);
-                t_row[col] = tt.map(|v| v.clamp(0.0, 1.0) as f32);
-                s_row[col] = st.map(|v| v.clamp(0.0, 1.0) as f32);
-                e_row[col] = e.map(|v| v as f32);
+                t_row[col] = t_to_rgb(&p.result.transmittance).map(|v| v.clamp(0.0, 1.0) as f32);
+                if want_sun_t {
+                    s_row[col] = t_to_rgb(&p.result.sun_transmittance).map(|v| v.clamp(0.0, 1.0) as f32);
+                }
+                if want_error {
+                    e_row[col] = e.map(|v| v as f32);
+                }
                 d_row[col] = if p.hit { p.depth as f32 } else { DEPTH_NO_HIT };
                 hits += p.hit as u64;
                 vac += (!p.in_medium) as u64;
@@ -788,7 +797,7 @@ fn render_channels<const C: usize>(scene: &Scene, report: &mut Report, progress:
             n_vac.fetch_add(vac, Ordering::Relaxed);
             n_num.fetch_add(num, Ordering::Relaxed);
             n_unconv.fetch_add(unconv, Ordering::Relaxed);
-            if let Ok(mut m) = max_abs.lock() {
+            if let Ok(mut m) = max_err.lock() {
                 m.0 = m.0.max(row_abs);
                 m.1 = m.1.max(row_rel);
             }
@@ -799,7 +808,7 @@ fn render_channels<const C: usize>(scene: &Scene, report: &mut Report, progress:
         });
     report.time("render", t);
 
-    let (max_abs_v, max_rel_v) = max_abs.into_inner().unwrap_or((0.0, 0.0));
+    let (max_abs_v, max_rel_v) = max_err.into_inner().unwrap_or((0.0, 0.0));
     let pixels = n as u64;
     let numeric = n_num.into_inner();
     let vac = n_vac.into_inner();

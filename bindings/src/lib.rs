@@ -1,0 +1,222 @@
+//! `tyndall._native`: thin PyO3 bindings of the Tyndall core.
+//!
+//! Extract the arguments, release the interpreter (`py.detach`) for the long
+//! work, convert the results: images to numpy arrays, the report to a dict
+//! (through its JSON), errors to Python exceptions. No physics here.
+
+use numpy::{PyArray1, PyArrayMethods};
+use pyo3::create_exception;
+use pyo3::exceptions::{PyRuntimeError, PyValueError};
+use pyo3::prelude::*;
+use pyo3::types::{PyDict, PyList};
+use std::path::PathBuf;
+use tyndall_core::scene::LayerKind;
+use tyndall_core::{RenderError, Scene, SceneError};
+
+create_exception!(
+    _native,
+    SceneFormatError,
+    PyValueError,
+    "A scene was rejected; `.path` names the field, `.source_name` the file."
+);
+create_exception!(_native, RenderFailed, PyRuntimeError, "A render or an output file failed.");
+
+fn scene_err(py: Python<'_>, e: SceneError) -> PyErr {
+    let err = SceneFormatError::new_err(e.to_string());
+    let value = err.value(py);
+    let _ = value.setattr("path", e.path.clone());
+    let _ = value.setattr("source_name", e.source_name.clone());
+    let _ = value.setattr("detail", e.message.clone());
+    err
+}
+
+fn render_err(py: Python<'_>, e: RenderError) -> PyErr {
+    match e {
+        RenderError::InvalidScene(path, message) => scene_err(
+            py,
+            SceneError {
+                source_name: "<scene>".into(),
+                path,
+                message,
+            },
+        ),
+        other => RenderFailed::new_err(other.to_string()),
+    }
+}
+
+/// A validated scene. Create with `load_scene(path)` or `scene_from_json(text)`.
+#[pyclass(name = "Scene", module = "tyndall", frozen)]
+#[derive(Clone)]
+struct PyScene {
+    inner: Scene,
+}
+
+#[pymethods]
+impl PyScene {
+    /// The scene as pretty JSON text.
+    fn to_json(&self) -> String {
+        self.inner.to_json_string()
+    }
+
+    /// Image size `(width, height)` in pixels.
+    #[getter]
+    fn resolution(&self) -> (u32, u32) {
+        match &self.inner.camera {
+            tyndall_core::scene::Camera::Perspective(c) => (c.resolution[0], c.resolution[1]),
+            tyndall_core::scene::Camera::Equirectangular(c) => (c.resolution[0], c.resolution[1]),
+        }
+    }
+
+    fn __repr__(&self) -> String {
+        let (w, h) = self.resolution();
+        format!(
+            "<tyndall.Scene {w}x{h}, {} meshes, {} lights, {} media>",
+            self.inner.meshes.len(),
+            self.inner.lights.len(),
+            self.inner.media.len()
+        )
+    }
+}
+
+/// Loads and validates a JSON scene file.
+#[pyfunction]
+fn load_scene(py: Python<'_>, path: PathBuf) -> PyResult<PyScene> {
+    let r = py.detach(|| Scene::load(&path));
+    r.map(|inner| PyScene { inner }).map_err(|e| scene_err(py, e))
+}
+
+/// Parses and validates a scene from JSON text.
+#[pyfunction]
+#[pyo3(signature = (text, source_name = "<string>"))]
+fn scene_from_json(py: Python<'_>, text: &str, source_name: &str) -> PyResult<PyScene> {
+    Scene::from_json_str(text, source_name)
+        .map(|inner| PyScene { inner })
+        .map_err(|e| scene_err(py, e))
+}
+
+fn parse_layers(names: Vec<String>) -> PyResult<Vec<LayerKind>> {
+    names
+        .into_iter()
+        .map(|n| {
+            serde_json_layer(&n).ok_or_else(|| {
+                PyValueError::new_err(format!(
+                    "unknown layer {n:?}: expected inscatter, transmittance, depth, sun_transmittance or error"
+                ))
+            })
+        })
+        .collect()
+}
+
+fn serde_json_layer(name: &str) -> Option<LayerKind> {
+    [
+        LayerKind::Inscatter,
+        LayerKind::Transmittance,
+        LayerKind::Depth,
+        LayerKind::SunTransmittance,
+        LayerKind::Error,
+    ]
+    .into_iter()
+    .find(|k| k.to_string() == name)
+}
+
+fn with_overrides(scene: &Scene, tolerance: Option<f64>, threads: Option<usize>, layers: Option<Vec<String>>) -> PyResult<Scene> {
+    let mut s = scene.clone();
+    if let Some(t) = tolerance {
+        s.output.tolerance = t;
+    }
+    if let Some(n) = threads {
+        s.output.threads = n;
+    }
+    if let Some(l) = layers {
+        s.output.layers = parse_layers(l)?;
+    }
+    Ok(s)
+}
+
+fn rgb_array<'py>(py: Python<'py>, px: &[[f32; 3]], w: usize, h: usize) -> PyResult<Bound<'py, PyAny>> {
+    let flat: Vec<f32> = px.iter().flat_map(|p| p.iter().copied()).collect();
+    Ok(PyArray1::from_vec(py, flat).reshape([h, w, 3])?.into_any())
+}
+
+/// Renders a scene. Returns `(layers, report)`: a dict of float32 numpy
+/// arrays (`inscatter`, `transmittance`, `sun_transmittance`, `error`: H×W×3;
+/// `depth`: H×W), row 0 at the top, and the report as a JSON string.
+/// The interpreter is released while rendering.
+#[pyfunction]
+#[pyo3(signature = (scene, tolerance = None, threads = None, layers = None))]
+fn render<'py>(
+    py: Python<'py>,
+    scene: &PyScene,
+    tolerance: Option<f64>,
+    threads: Option<usize>,
+    layers: Option<Vec<String>>,
+) -> PyResult<(Bound<'py, PyDict>, String)> {
+    let s = with_overrides(&scene.inner, tolerance, threads, layers)?;
+    let (images, mut report) = py.detach(|| tyndall_core::render(&s, None)).map_err(|e| render_err(py, e))?;
+    report.resolution = [images.width, images.height];
+    let (w, h) = (images.width, images.height);
+    let out = PyDict::new(py);
+    for k in &images.layers {
+        let arr = match k {
+            LayerKind::Inscatter => rgb_array(py, &images.inscatter, w, h)?,
+            LayerKind::Transmittance => rgb_array(py, &images.transmittance, w, h)?,
+            LayerKind::SunTransmittance => rgb_array(py, &images.sun_transmittance, w, h)?,
+            LayerKind::Error => rgb_array(py, &images.error, w, h)?,
+            LayerKind::Depth => PyArray1::from_vec(py, images.depth.clone()).reshape([h, w])?.into_any(),
+        };
+        out.set_item(k.to_string(), arr)?;
+    }
+    Ok((out, report.to_json()))
+}
+
+/// Renders and writes the EXR (and optionally report JSON and PNG preview)
+/// atomically; returns the report as a JSON string.
+#[pyfunction]
+#[pyo3(signature = (scene, out, report = None, preview = None, tolerance = None, threads = None))]
+fn render_to_files(
+    py: Python<'_>,
+    scene: &PyScene,
+    out: PathBuf,
+    report: Option<PathBuf>,
+    preview: Option<PathBuf>,
+    tolerance: Option<f64>,
+    threads: Option<usize>,
+) -> PyResult<String> {
+    let s = with_overrides(&scene.inner, tolerance, threads, None)?;
+    let r = py.detach(|| tyndall_cli::render_to_files(&s, &out, report.as_deref(), preview.as_deref(), false));
+    match r {
+        Ok(rep) => Ok(rep.to_json()),
+        Err(tyndall_cli::CliError::Scene(e)) => Err(scene_err(py, e)),
+        Err(tyndall_cli::CliError::Render(e)) => Err(render_err(py, e)),
+        Err(e) => Err(RenderFailed::new_err(e.to_string())),
+    }
+}
+
+/// The JSON Schema of the scene format.
+#[pyfunction]
+fn scene_schema() -> String {
+    tyndall_core::scene::json_schema()
+}
+
+/// Runs the `tyndall` command line with `argv` (including the program name);
+/// returns the exit code. The interpreter is released while it runs.
+#[pyfunction]
+fn cli_main(py: Python<'_>, argv: Bound<'_, PyList>) -> PyResult<i32> {
+    let args: Vec<String> = argv.extract()?;
+    Ok(py.detach(|| tyndall_cli::run(args)))
+}
+
+#[pymodule]
+fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    m.add_class::<PyScene>()?;
+    m.add_function(wrap_pyfunction!(load_scene, m)?)?;
+    m.add_function(wrap_pyfunction!(scene_from_json, m)?)?;
+    m.add_function(wrap_pyfunction!(render, m)?)?;
+    m.add_function(wrap_pyfunction!(render_to_files, m)?)?;
+    m.add_function(wrap_pyfunction!(scene_schema, m)?)?;
+    m.add_function(wrap_pyfunction!(cli_main, m)?)?;
+    m.add("SceneFormatError", m.py().get_type::<SceneFormatError>())?;
+    m.add("RenderFailed", m.py().get_type::<RenderFailed>())?;
+    m.add("__version__", tyndall_core::VERSION)?;
+    Ok(())
+}
