@@ -14,6 +14,7 @@
 // iterator chains over four zipped arrays read worse than `for c in 0..C`.
 #![allow(clippy::needless_range_loop)]
 
+pub mod bench_scenes;
 pub mod geometry;
 pub mod io;
 pub mod medium;

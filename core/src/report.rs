@@ -80,6 +80,10 @@ pub struct ErrorEstimate {
     pub pixels_not_converged: u64,
     /// How the estimate was obtained.
     pub method: String,
+    /// Largest relative change of a sun's in-scatter had its disc been
+    /// integrated over instead of treated as one direction (a model
+    /// approximation, not included in `max_rel`).
+    pub sun_disc_rel: f64,
 }
 
 /// Counts.

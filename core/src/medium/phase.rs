@@ -96,6 +96,60 @@ impl PhaseFunction {
         }
     }
 
+    /// Phase function averaged over a uniform disc (spherical cap) of angular
+    /// radius `radius_rad` centred `theta` radians from the view direction:
+    /// what a sun of finite size really contributes, sr⁻¹.
+    ///
+    /// `p̄(θ) = ∫∫ p(cos α) sin r dr dψ / (2π(1 − cos δ))`, with
+    /// `cos α = cos θ cos r + sin θ sin r cos ψ` (spherical law of cosines),
+    /// integrated adaptively to 1e-10 relative.
+    pub fn disc_average(&self, theta: f64, radius_rad: f64) -> f64 {
+        if radius_rad <= 0.0 {
+            return self.eval(theta.cos());
+        }
+        let (st, ct) = theta.sin_cos();
+        // Cap solid angle 2π(1 − cos δ), written with sin² so small δ keeps its digits.
+        let cap = 4.0 * PI * (0.5 * radius_rad).sin().powi(2);
+        let outer = crate::numeric::integrate_adaptive(
+            |r: f64| {
+                let (sr, cr) = r.sin_cos();
+                let inner =
+                    crate::numeric::integrate_adaptive(|psi: f64| [self.eval(ct * cr + st * sr * psi.cos())], 0.0, PI, 0.0, 1e-11, 200);
+                [2.0 * inner.value[0] * sr]
+            },
+            0.0,
+            radius_rad,
+            0.0,
+            1e-10,
+            200,
+        );
+        outer.value[0] / cap
+    }
+
+    /// Largest relative error, over all scattering angles, of treating a sun
+    /// of angular diameter `diameter_rad` as a single direction:
+    /// `max_θ |p̄(θ) − p(θ)| / p(θ)` with [`PhaseFunction::disc_average`],
+    /// evaluated at angles clustered towards the forward peak where the
+    /// blur is largest. Returns `(relative error, angle in radians where it is largest)`.
+    pub fn point_sun_error(&self, diameter_rad: f64) -> (f64, f64) {
+        let delta = 0.5 * diameter_rad;
+        if delta <= 0.0 {
+            return (0.0, 0.0);
+        }
+        let mut worst = (0.0, 0.0);
+        let mut thetas: Vec<f64> = (0..=40).map(|i| delta * 0.25 * 1.2f64.powi(i)).filter(|t| *t < PI).collect();
+        thetas.push(0.0);
+        thetas.extend((1..=36).map(|i| PI * i as f64 / 36.0));
+        for theta in thetas {
+            let p = self.eval(theta.cos());
+            let rel = (self.disc_average(theta, delta) - p).abs() / p;
+            if rel > worst.0 {
+                worst = (rel, theta);
+            }
+        }
+        worst
+    }
+
     /// A short human-readable name for reports.
     pub fn describe(&self) -> String {
         match *self {
@@ -161,6 +215,25 @@ mod tests {
         let p = PhaseFunction::HenyeyGreenstein { g };
         let r = integrate_adaptive(|mu| [mu * p.eval(mu)], -1.0, 1.0, 0.0, 1e-13, 4000);
         assert!((2.0 * PI * r.value[0] - g).abs() < 1e-10);
+    }
+
+    #[test]
+    fn point_sun_error_matches_the_second_order_estimate() {
+        // For a smooth lobe the cap average is p + (δ²/8)·Δ_S p to second order;
+        // at θ = 0, Δ_S p = 2 p''(0). For HG, p''(0)/p(0) = −3g/(1−g)².
+        let g: f64 = 0.76;
+        let p = PhaseFunction::HenyeyGreenstein { g };
+        let d = 0.526f64.to_radians();
+        let delta = d / 2.0;
+        let second_order = (delta * delta / 8.0) * 2.0 * 3.0 * g / ((1.0 - g) * (1.0 - g));
+        let at_zero = (p.disc_average(0.0, delta) - p.eval(1.0)).abs() / p.eval(1.0);
+        assert!((at_zero - second_order).abs() < 0.02 * second_order, "{at_zero} vs {second_order}");
+        let (worst, where_) = p.point_sun_error(d);
+        assert!(worst >= at_zero * 0.999 && where_ < 0.05, "{worst} at {where_}");
+        // Isotropic: no blur at all.
+        assert!(PhaseFunction::Isotropic.point_sun_error(d).0 < 1e-9);
+        // A very sharp lobe: the blur is large and the estimate says so.
+        assert!(PhaseFunction::HenyeyGreenstein { g: 0.995 }.point_sun_error(d).0 > 0.05);
     }
 
     #[test]

@@ -298,7 +298,6 @@ fn prepare_lights<const C: usize>(scene: &Scene, report: &mut Report) -> LightSe
                 direction_to_sun,
                 color,
                 strength_w_m2,
-                angular_diameter_deg,
                 spectrum: shape,
                 ..
             } => {
@@ -327,10 +326,6 @@ fn prepare_lights<const C: usize>(scene: &Scene, report: &mut Report) -> LightSe
                         "directional light, {strength_w_m2} W/m², elevation {:.3}°",
                         to_sun.z.asin().to_degrees()
                     ),
-                );
-                report.plan.left_out(
-                    format!("{label}: sun disc ({angular_diameter_deg}° wide)"),
-                    "in-scatter treats the sun as one direction; the disc blurs the phase function by less than its width, below the error of the single-scattering model for the smooth lobes used here",
                 );
                 set.suns.push(SunSource { to_sun, irradiance });
             }
@@ -688,6 +683,7 @@ fn render_channels<const C: usize>(scene: &Scene, report: &mut Report, progress:
     let cam = CameraRays::new(&scene.camera);
     let lights = prepare_lights::<C>(scene, report);
     let media = prepare_media::<C>(scene, &lights, report);
+    report.error.sun_disc_rel = sun_disc_effect(scene, &media, report);
     let tolerance = scene.output.tolerance;
     let mut t = report.time("plan", t0);
 
@@ -821,6 +817,7 @@ fn render_channels<const C: usize>(scene: &Scene, report: &mut Report, progress:
             .left_out(format!("scattering integral on {vac} view rays"), "the ray crosses no medium");
     }
     report.error = crate::report::ErrorEstimate {
+        sun_disc_rel: report.error.sun_disc_rel,
         tolerance,
         max_abs: max_abs_v,
         max_rel: max_rel_v,
@@ -857,6 +854,54 @@ fn render_channels<const C: usize>(scene: &Scene, report: &mut Report, progress:
         error,
         layers,
     }
+}
+
+/// The sun disc is not integrated over: each sun is one direction. This
+/// measures what that leaves out — the largest relative change of any phase
+/// function in the scene when averaged over the disc — and reports it.
+fn sun_disc_effect<const C: usize>(scene: &Scene, media: &[PreparedMedium<C>], report: &mut Report) -> f64 {
+    let mut phases: Vec<PhaseFunction> = Vec::new();
+    for m in media {
+        match m {
+            PreparedMedium::Homogeneous(h) => phases.push(h.phase),
+            PreparedMedium::HeightFog(h) => {
+                phases.push(PhaseFunction::Rayleigh);
+                phases.push(h.mie_phase);
+            }
+            PreparedMedium::FogLayer(f) => phases.push(f.phase),
+        }
+    }
+    let mut worst = 0.0f64;
+    for (i, l) in scene.lights.iter().enumerate() {
+        let Light::Sun { angular_diameter_deg, .. } = l else { continue };
+        if phases.is_empty() {
+            continue;
+        }
+        let (mut rel, mut at, mut which) = (0.0f64, 0.0, String::new());
+        for p in &phases {
+            let (r, theta) = p.point_sun_error(angular_diameter_deg.to_radians());
+            if r > rel {
+                (rel, at, which) = (r, theta, p.describe());
+            }
+        }
+        report.plan.left_out(
+            format!("{}: sun disc ({angular_diameter_deg}° wide)", light_label(i, l)),
+            format!(
+                "in-scatter treats the sun as one direction; averaging the phase function over the disc would change the sun's in-scatter by at most {rel:.2e} relative ({which}, {:.3}° from the sun)",
+                at.to_degrees()
+            ),
+        );
+        if rel > scene.output.tolerance {
+            report.warnings.push(format!(
+                "{}: treating the sun as a point changes its in-scatter by up to {rel:.2e}, more than the tolerance {:.1e}, near {:.3}° from the sun ({which})",
+                light_label(i, l),
+                scene.output.tolerance,
+                at.to_degrees()
+            ));
+        }
+        worst = worst.max(rel);
+    }
+    worst
 }
 
 /// |r̄_c(λ)|·k·Δλ: bounds how a per-wavelength error maps into each RGB channel.
