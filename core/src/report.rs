@@ -78,6 +78,15 @@ pub struct ErrorEstimate {
     pub pixels_numeric: u64,
     /// Numerically integrated pixels whose estimate did not reach the tolerance.
     pub pixels_not_converged: u64,
+    /// Pixels integrated against the pixel filter (silhouettes, sharp medium
+    /// boundaries); their errors are summarised here, not in `max_abs`/`max_rel`.
+    pub edge_pixels: u64,
+    /// Largest error estimate of a filter-integrated pixel, W·m⁻²·sr⁻¹.
+    pub edge_max_abs: f64,
+    /// Largest relative error estimate of a filter-integrated pixel.
+    pub edge_max_rel: f64,
+    /// Filter-integrated pixels that did not reach the tolerance at 16×16 samples.
+    pub edge_pixels_not_converged: u64,
     /// How the estimate was obtained.
     pub method: String,
     /// Largest relative change of a sun's in-scatter had its disc been

@@ -14,6 +14,7 @@
 //! field path (`media[0].scattering[2]`), never a panic.
 
 use crate::medium::phase::PhaseFunction;
+pub use crate::render::filter::PixelFilter;
 use crate::spectrum::{self, SPECTRAL_SAMPLES, Spectrum};
 use glam::{DMat3, DMat4, DQuat, DVec3};
 use schemars::JsonSchema;
@@ -110,7 +111,8 @@ pub struct PerspectiveCamera {
     pub shift_y: f64,
     /// Image size `[width, height]` in pixels, each 1..=65536. Required.
     pub resolution: [u32; 2],
-    /// Distance along each view ray where rendering starts, m, ≥ 0. Default 0.
+    /// Clip start, m, ≥ 0, measured along the view axis as Blender does (a ray
+    /// at angle θ to the axis starts at clip_start / cos θ). Default 0.
     #[serde(default)]
     pub clip_start_m: f64,
     /// Distance along each view ray where rendering ends, m, > clip_start;
@@ -467,7 +469,9 @@ pub enum LayerKind {
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize, JsonSchema)]
 #[serde(rename_all = "snake_case")]
 pub enum SpectralMode {
-    /// Spectral only when some medium or light needs it (default).
+    /// Spectral only when some medium has a wavelength-dependent spectral
+    /// coefficient (default). A solar-spectrum light alone does not need it:
+    /// grey or RGB media scale every wavelength of a channel alike.
     #[default]
     Auto,
     /// Always spectral (81 samples, 380–780 nm at 5 nm).
@@ -492,6 +496,9 @@ pub struct Output {
     /// Spectral or RGB. Default auto.
     #[serde(default)]
     pub spectral: SpectralMode,
+    /// Pixel filter of perspective images. Default Blackman–Harris 1.5 px (Blender's).
+    #[serde(default)]
+    pub pixel_filter: PixelFilter,
 }
 
 impl Default for Output {
@@ -501,6 +508,7 @@ impl Default for Output {
             tolerance: default_tolerance(),
             threads: 0,
             spectral: SpectralMode::Auto,
+            pixel_filter: PixelFilter::default(),
         }
     }
 }
@@ -890,6 +898,20 @@ impl Validator {
         }
         self.push("output");
         self.range("tolerance", s.output.tolerance, 1e-12, 0.5, "");
+        if s.output.layers.is_empty() {
+            self.fail(
+                "layers",
+                "at least one layer is needed (inscatter, transmittance, depth, sun_transmittance, error)",
+            );
+        }
+        for (i, l) in s.output.layers.iter().enumerate() {
+            if s.output.layers[..i].contains(l) {
+                self.fail(&format!("layers[{i}]"), format!("layer {l} is listed twice"));
+            }
+        }
+        if let PixelFilter::BlackmanHarris { width_px } = s.output.pixel_filter {
+            self.range("pixel_filter.width_px", width_px, 0.01, 10.0, "px");
+        }
         if s.output.threads > 4096 {
             self.fail("threads", format!("{} threads is more than 4096", s.output.threads));
         }

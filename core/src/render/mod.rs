@@ -19,6 +19,8 @@
 //! Rows are rendered in parallel with rayon; a progress callback is called as
 //! rows finish.
 
+pub mod filter;
+
 use crate::geometry::bvh::Bvh;
 use crate::geometry::camera::CameraRays;
 use crate::geometry::world_triangles;
@@ -34,7 +36,7 @@ use crate::scene::{Bounds, Coefficient, LayerKind, Light, LightSpectrum, Medium,
 use crate::spectrum::{self, SPECTRAL_SAMPLES};
 use glam::DVec3;
 use rayon::prelude::*;
-use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
+use std::sync::atomic::{AtomicUsize, Ordering};
 use std::time::Instant;
 
 /// Depth written where a view ray meets no surface (Blender's convention).
@@ -503,6 +505,8 @@ struct PixelOut<const C: usize> {
     result: RayResult<C>,
     depth: f64,
     hit: bool,
+    /// Triangle index + 1 of the surface hit, 0 for none.
+    surface: u32,
     numeric: Option<bool>,
     in_medium: bool,
 }
@@ -520,11 +524,13 @@ fn shade_pixel<const C: usize>(
     let start = cam.start_distance(dir);
     let mut end = cam.clip_end;
     let mut hit = false;
+    let mut surface = 0;
     if let Some(b) = bvh
         && let Some(h) = b.closest_hit(cam.position, dir, start, end)
     {
         end = h.t;
         hit = true;
+        surface = h.triangle + 1;
     }
     let depth = if hit { end } else { f64::INFINITY };
     let ray = ViewRay {
@@ -554,10 +560,9 @@ fn shade_pixel<const C: usize>(
         result = r;
         numeric = Some(converged);
     }
-    if hit
-        && n_active > 1
-        && let Some(sun) = lights.suns.first()
-    {
+    // The sun reaching the surface point crosses every medium on its way,
+    // including media the view ray never enters.
+    if hit && let Some(sun) = lights.suns.first() {
         let p = ray.origin + ray.dir * ray.s_max;
         let mut ts = [1.0; C];
         for m in media {
@@ -575,6 +580,7 @@ fn shade_pixel<const C: usize>(
         result,
         depth,
         hit,
+        surface,
         numeric,
         in_medium: n_active > 0,
     }
@@ -599,11 +605,29 @@ fn integrate_media<const C: usize>(
         }
         t
     };
+    // Each medium's source sees the suns dimmed by every other medium on the
+    // sun path too (its own attenuation is inside its `source`).
     let integrand = |s: f64| {
         let tau = total_tau(s);
+        let p = ray.origin + ray.dir * s;
         let mut out = [0.0; C];
-        for m in media {
-            let src = m.source(ray, s, lights);
+        for (mi, m) in media.iter().enumerate() {
+            let src = if lights.suns.is_empty() || media.len() == 1 {
+                m.source(ray, s, lights)
+            } else {
+                let mut dimmed = lights.clone();
+                for sun in dimmed.suns.iter_mut() {
+                    for (oi, other) in media.iter().enumerate() {
+                        if oi != mi {
+                            let t = other.sun_transmittance_at(p, sun.to_sun);
+                            for c in 0..C {
+                                sun.irradiance[c] *= t[c];
+                            }
+                        }
+                    }
+                }
+                m.source(ray, s, &dimmed)
+            };
             for c in 0..C {
                 out[c] += src[c];
             }
@@ -687,7 +711,7 @@ fn render_channels<const C: usize>(scene: &Scene, report: &mut Report, progress:
     let tolerance = scene.output.tolerance;
     let mut t = report.time("plan", t0);
 
-    let (tris, _owner) = world_triangles(&scene.meshes);
+    let (tris, owner) = world_triangles(&scene.meshes);
     report.stats.triangles = tris.len() as u64;
     let bvh = if tris.is_empty() {
         report
@@ -706,17 +730,6 @@ fn render_channels<const C: usize>(scene: &Scene, report: &mut Report, progress:
     let (w, h) = (cam.width, cam.height);
     let n = w * h;
     let want = |k: LayerKind| scene.output.layers.contains(&k);
-    // Layers not requested get one dummy element per row instead of a full buffer.
-    let (want_sun_t, want_error) = (want(LayerKind::SunTransmittance), want(LayerKind::Error));
-    let mut inscatter = vec![[0f32; 3]; n];
-    let mut transmittance = vec![[1f32; 3]; n];
-    let mut depth = vec![DEPTH_NO_HIT; n];
-    let mut sun_t = vec![[1f32; 3]; if want_sun_t { n } else { h }];
-    let mut error = vec![[0f32; 3]; if want_error { n } else { h }];
-    let (sun_chunk, err_chunk) = (if want_sun_t { w } else { 1 }, if want_error { w } else { 1 });
-    let done = AtomicUsize::new(0);
-    let (n_hit, n_vac, n_num, n_unconv) = (AtomicU64::new(0), AtomicU64::new(0), AtomicU64::new(0), AtomicU64::new(0));
-    let max_err = std::sync::Mutex::new((0.0f64, 0.0f64));
     let spectral = C != 3;
     let abs_weights = if spectral { Some(abs_rgb_weights()) } else { None };
     let to_rgb = |v: &[f64; C]| -> [f64; 3] {
@@ -749,67 +762,208 @@ fn render_channels<const C: usize>(scene: &Scene, report: &mut Report, progress:
             None => [v[0], v[1], v[2]],
         }
     };
+    // One sample, reduced to RGB.
+    let sample = |x: f64, y: f64| -> Sample {
+        let p = shade_pixel(&cam, bvh.as_ref(), &media, &lights, x, y, tolerance);
+        let l = to_rgb(&p.result.inscatter);
+        let e = err_to_rgb(&p.result.error);
+        // Closed forms carry their rounding bound as a relative constant; only
+        // numeric pixels need a division.
+        let mut rel = p.result.rel_bound;
+        if p.numeric.is_some() {
+            for c in 0..3 {
+                if l[c].abs() > 0.0 {
+                    rel = rel.max(e[c] / l[c].abs());
+                }
+            }
+        }
+        Sample {
+            l,
+            t: t_to_rgb(&p.result.transmittance),
+            st: t_to_rgb(&p.result.sun_transmittance),
+            e,
+            rel,
+            depth: p.depth,
+            hit: p.hit,
+            surface: p.surface,
+            numeric: p.numeric,
+            in_medium: p.in_medium,
+            edge: false,
+        }
+    };
 
-    inscatter
-        .par_chunks_mut(w)
-        .zip(transmittance.par_chunks_mut(w))
-        .zip(depth.par_chunks_mut(w))
-        .zip(sun_t.par_chunks_mut(sun_chunk))
-        .zip(error.par_chunks_mut(err_chunk))
-        .enumerate()
-        .for_each(|(row, ((((l_row, t_row), d_row), s_row), e_row))| {
-            let (mut hits, mut vac, mut num, mut unconv) = (0u64, 0u64, 0u64, 0u64);
-            let (mut row_abs, mut row_rel) = (0.0f64, 0.0f64);
-            for col in 0..w {
-                let p = shade_pixel(&cam, bvh.as_ref(), &media, &lights, col as f64 + 0.5, row as f64 + 0.5, tolerance);
-                let l = to_rgb(&p.result.inscatter);
-                let e = err_to_rgb(&p.result.error);
-                // Relative error: closed forms carry their rounding bound as a
-                // relative constant; only numeric pixels need a division.
-                row_rel = row_rel.max(p.result.rel_bound);
-                for c in 0..3 {
-                    row_abs = row_abs.max(e[c]);
-                    if p.numeric.is_some() && l[c].abs() > 0.0 {
-                        row_rel = row_rel.max(e[c] / l[c].abs());
+    // Pass 1: the centre of every pixel, rows in parallel.
+    let done = AtomicUsize::new(0);
+    let mut centre: Vec<Sample> = Vec::with_capacity(n);
+    centre.par_extend((0..h).into_par_iter().flat_map_iter(|row| {
+        let out: Vec<Sample> = (0..w).map(|col| sample(col as f64 + 0.5, row as f64 + 0.5)).collect();
+        let d = done.fetch_add(1, Ordering::Relaxed) + 1;
+        if let Some(cb) = progress {
+            cb(d, h);
+        }
+        out
+    }));
+    t = report.time("render", t);
+
+    // Pass 2: the pixel filter where the surface seen changes (perspective only).
+    let filter = match scene.camera {
+        crate::scene::Camera::Perspective(_) => scene.output.pixel_filter,
+        crate::scene::Camera::Equirectangular(_) => crate::render::filter::PixelFilter::None,
+    };
+    let mut edge_stats = EdgeStats::default();
+    if filter.radius() > 0.0 {
+        let reach = filter.radius().ceil() as isize;
+        // A pixel needs the filter integral when a neighbour within the filter's
+        // reach sees a different surface AND the two centre samples differ by
+        // more than the tolerance (a fogged-out horizon needs nothing).
+        let differs = |a: &Sample, b: &Sample| -> bool {
+            (0..3).any(|c| {
+                let scale = a.l[c].abs().max(b.l[c].abs());
+                (a.l[c] - b.l[c]).abs() > tolerance * scale || (a.t[c] - b.t[c]).abs() > tolerance
+            })
+        };
+        let is_edge = |i: usize| -> bool {
+            let (x, y) = ((i % w) as isize, (i / w) as isize);
+            let s0 = &centre[i];
+            for dy in -reach..=reach {
+                for dx in -reach..=reach {
+                    let (xx, yy) = (x + dx, y + dy);
+                    if xx >= 0 && yy >= 0 && (xx as usize) < w && (yy as usize) < h {
+                        let s1 = &centre[yy as usize * w + xx as usize];
+                        if surface_changes(s0.surface, s1.surface, &owner) && differs(s0, s1) {
+                            return true;
+                        }
                     }
                 }
-                l_row[col] = l.map(|v| v as f32);
-                t_row[col] = t_to_rgb(&p.result.transmittance).map(|v| v.clamp(0.0, 1.0) as f32);
-                if want_sun_t {
-                    s_row[col] = t_to_rgb(&p.result.sun_transmittance).map(|v| v.clamp(0.0, 1.0) as f32);
-                }
-                if want_error {
-                    e_row[col] = e.map(|v| v as f32);
-                }
-                d_row[col] = if p.hit { p.depth as f32 } else { DEPTH_NO_HIT };
-                hits += p.hit as u64;
-                vac += (!p.in_medium) as u64;
-                if let Some(conv) = p.numeric {
-                    num += 1;
-                    unconv += (!conv) as u64;
-                }
             }
-            n_hit.fetch_add(hits, Ordering::Relaxed);
-            n_vac.fetch_add(vac, Ordering::Relaxed);
-            n_num.fetch_add(num, Ordering::Relaxed);
-            n_unconv.fetch_add(unconv, Ordering::Relaxed);
-            if let Ok(mut m) = max_err.lock() {
-                m.0 = m.0.max(row_abs);
-                m.1 = m.1.max(row_rel);
+            false
+        };
+        // The filter's second-order effect on a smooth image, (σ²/2)·∇²(L, T),
+        // from the discrete Laplacian of the centre samples.
+        let half_var = 0.5 * filter.variance();
+        let lap_err: Vec<([f64; 3], f64)> = (0..n)
+            .into_par_iter()
+            .map(|i| {
+                let (x, y) = (i % w, i / w);
+                if x == 0 || y == 0 || x + 1 == w || y + 1 == h {
+                    return ([0.0; 3], 0.0);
+                }
+                let lap = |f: &dyn Fn(&Sample) -> f64| {
+                    f(&centre[i - 1]) + f(&centre[i + 1]) + f(&centre[i - w]) + f(&centre[i + w]) - 4.0 * f(&centre[i])
+                };
+                let mut el = [0.0; 3];
+                let mut et = 0.0f64;
+                for c in 0..3 {
+                    el[c] = half_var * lap(&|s: &Sample| s.l[c]).abs();
+                    et = et.max(half_var * lap(&|s: &Sample| s.t[c]).abs());
+                }
+                (el, et)
+            })
+            .collect();
+        // Pixels where the centre sample is not good enough: a surface change
+        // within the filter, or a filter effect above the tolerance (a sharp
+        // medium boundary, a narrow glow).
+        let needs_integral = |i: usize| -> bool {
+            let (el, et) = &lap_err[i];
+            let lmax = centre[i].l.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+            *et > tolerance || el.iter().any(|e| *e > tolerance * lmax) || is_edge(i)
+        };
+        let edges: Vec<usize> = (0..n).into_par_iter().filter(|i| needs_integral(*i)).collect();
+        let filtered: Vec<(usize, Sample, [f64; 3], usize)> = edges
+            .par_iter()
+            .map(|&i| {
+                let (x, y) = ((i % w) as f64 + 0.5, (i / w) as f64 + 0.5);
+                let (s, err, per_axis) = filter_pixel(&filter, x, y, tolerance, &sample);
+                (i, s, err, per_axis)
+            })
+            .collect();
+        edge_stats.pixels = filtered.len() as u64;
+        edge_stats.samples = filtered.iter().map(|f| (f.3 * f.3) as u64).sum();
+        for (s, (el, _)) in centre.iter_mut().zip(lap_err) {
+            for c in 0..3 {
+                s.e[c] += el[c];
             }
-            let d = done.fetch_add(1, Ordering::Relaxed) + 1;
-            if let Some(cb) = progress {
-                cb(d, h);
+            let lmax = s.l.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+            if lmax > 0.0 {
+                s.rel = s.rel.max(el.iter().fold(0.0f64, |m, v| m.max(*v)) / lmax);
             }
-        });
-    report.time("render", t);
+        }
+        for (i, s, err, _) in &filtered {
+            let keep_depth = (centre[*i].depth, centre[*i].hit, centre[*i].surface);
+            let mut s = *s;
+            (s.depth, s.hit, s.surface) = keep_depth;
+            s.e = *err;
+            s.edge = true;
+            let lmax = s.l.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+            let rel = if lmax > 0.0 {
+                err.iter().fold(0.0f64, |m, v| m.max(*v)) / lmax
+            } else {
+                0.0
+            };
+            edge_stats.max_abs = edge_stats.max_abs.max(err.iter().fold(0.0f64, |m, v| m.max(*v)));
+            edge_stats.max_rel = edge_stats.max_rel.max(rel);
+            if rel > tolerance {
+                edge_stats.not_converged += 1;
+            }
+            // Filter-integrated pixels are summarised separately (edge_*), not in max_abs/max_rel.
+            s.rel = 0.0;
+            centre[*i] = s;
+        }
+        report.plan.computed(
+            format!("pixel filter integral on {} pixels (silhouettes, sharp medium boundaries)", filtered.len()),
+            format!(
+                "Blackman-Harris {:.2} px (Blender's), n×n midpoint rule doubling from 4 to 16 per axis until two estimates agree to the tolerance: {} samples",
+                2.0 * filter.radius(),
+                edge_stats.samples
+            ),
+        );
+        report.plan.left_out(
+            format!("pixel filter integral on {} smooth pixels", n - filtered.len()),
+            "the image is smooth within the filter: the centre sample is used; the filter's second-order effect (σ²/2)·∇²L is below the tolerance and is added to the error estimate",
+        );
+        t = report.time("pixel_filter", t);
+    } else {
+        report.plan.left_out(
+            "pixel filter",
+            "none requested (or an equirectangular camera): point samples at pixel centres",
+        );
+    }
+    let _ = t;
 
-    let (max_abs_v, max_rel_v) = max_err.into_inner().unwrap_or((0.0, 0.0));
+    // Write the layers.
+    let want_sun_t = want(LayerKind::SunTransmittance);
+    let want_error = want(LayerKind::Error);
+    let inscatter: Vec<[f32; 3]> = centre.iter().map(|s| s.l.map(|v| v as f32)).collect();
+    let transmittance: Vec<[f32; 3]> = centre.iter().map(|s| s.t.map(|v| v.clamp(0.0, 1.0) as f32)).collect();
+    let depth: Vec<f32> = centre.iter().map(|s| if s.hit { s.depth as f32 } else { DEPTH_NO_HIT }).collect();
+    let sun_t: Vec<[f32; 3]> = if want_sun_t {
+        centre.iter().map(|s| s.st.map(|v| v.clamp(0.0, 1.0) as f32)).collect()
+    } else {
+        Vec::new()
+    };
+    let error: Vec<[f32; 3]> = if want_error {
+        centre.iter().map(|s| s.e.map(|v| v as f32)).collect()
+    } else {
+        Vec::new()
+    };
+    let mut max_abs_v = 0.0f64;
+    let mut max_rel_v = 0.0f64;
+    let (mut hits, mut vac, mut numeric, mut unconv) = (0u64, 0u64, 0u64, 0u64);
+    for s in &centre {
+        if !s.edge {
+            max_abs_v = max_abs_v.max(s.e.iter().fold(0.0f64, |m, v| m.max(*v)));
+        }
+        max_rel_v = max_rel_v.max(s.rel);
+        hits += s.hit as u64;
+        vac += (!s.in_medium) as u64;
+        if let Some(conv) = s.numeric {
+            numeric += 1;
+            unconv += (!conv) as u64;
+        }
+    }
     let pixels = n as u64;
-    let numeric = n_num.into_inner();
-    let vac = n_vac.into_inner();
     report.stats.pixels = pixels;
-    report.stats.rays_hit_surface = n_hit.into_inner();
+    report.stats.rays_hit_surface = hits;
     report.stats.rays_without_medium = vac;
     if vac > 0 && !media.is_empty() {
         report
@@ -824,7 +978,11 @@ fn render_channels<const C: usize>(scene: &Scene, report: &mut Report, progress:
         f32_storage_rel: f64::from(f32::EPSILON) / 2.0,
         pixels_closed_form: pixels - numeric - vac,
         pixels_numeric: numeric,
-        pixels_not_converged: n_unconv.into_inner(),
+        pixels_not_converged: unconv,
+        edge_pixels: edge_stats.pixels,
+        edge_max_abs: edge_stats.max_abs,
+        edge_max_rel: edge_stats.max_rel,
+        edge_pixels_not_converged: edge_stats.not_converged,
         method: if numeric == 0 {
             "closed forms only: the estimate bounds floating-point rounding of the closed form (exact model); the f32 storage error dominates".into()
         } else {
@@ -853,6 +1011,100 @@ fn render_channels<const C: usize>(scene: &Scene, report: &mut Report, progress:
         sun_transmittance: sun_t,
         error,
         layers,
+    }
+}
+
+/// One view-ray sample reduced to RGB.
+#[derive(Debug, Clone, Copy)]
+struct Sample {
+    l: [f64; 3],
+    t: [f64; 3],
+    st: [f64; 3],
+    e: [f64; 3],
+    rel: f64,
+    depth: f64,
+    hit: bool,
+    surface: u32,
+    numeric: Option<bool>,
+    in_medium: bool,
+    /// Integrated against the pixel filter (summarised separately).
+    edge: bool,
+}
+
+#[derive(Debug, Default)]
+struct EdgeStats {
+    pixels: u64,
+    samples: u64,
+    max_abs: f64,
+    max_rel: f64,
+    not_converged: u64,
+}
+
+/// Whether two centre samples see different surfaces (different meshes, or
+/// a mesh and nothing). Triangles of one mesh are one surface: T and L are
+/// continuous across its creases.
+fn surface_changes(a: u32, b: u32, owner: &[u32]) -> bool {
+    match (a, b) {
+        (0, 0) => false,
+        (0, _) | (_, 0) => true,
+        (a, b) => owner[(a - 1) as usize] != owner[(b - 1) as usize],
+    }
+}
+
+/// Largest n of the n×n filter integral at silhouettes.
+const MAX_FILTER_SAMPLES_PER_AXIS: usize = 16;
+
+/// The filtered value of one pixel: n×n midpoint rule over the filter's
+/// support, n = 4, 8, 16, until two successive estimates agree to
+/// `tolerance` (relative to the largest channel); returns the finest estimate,
+/// the difference as its error, and n.
+fn filter_pixel(
+    filter: &filter::PixelFilter,
+    x: f64,
+    y: f64,
+    tolerance: f64,
+    sample: &(dyn Fn(f64, f64) -> Sample + Sync),
+) -> (Sample, [f64; 3], usize) {
+    let estimate = |n: usize| -> Sample {
+        let nodes = filter.nodes(n);
+        let mut acc = sample(x, y);
+        acc.l = [0.0; 3];
+        acc.t = [0.0; 3];
+        acc.st = [0.0; 3];
+        acc.e = [0.0; 3];
+        for &(dy, wy) in &nodes {
+            for &(dx, wx) in &nodes {
+                let s = sample(x + dx, y + dy);
+                let wgt = wx * wy;
+                for c in 0..3 {
+                    acc.l[c] += wgt * s.l[c];
+                    acc.t[c] += wgt * s.t[c];
+                    acc.st[c] += wgt * s.st[c];
+                    acc.e[c] += wgt * s.e[c];
+                }
+                acc.numeric = match (acc.numeric, s.numeric) {
+                    (Some(a), Some(b)) => Some(a && b),
+                    (a, b) => a.or(b),
+                };
+                acc.in_medium |= s.in_medium;
+            }
+        }
+        acc
+    };
+    let mut coarse = estimate(4);
+    let mut n = 8;
+    loop {
+        let fine = estimate(n);
+        let mut err = [0.0; 3];
+        for c in 0..3 {
+            err[c] = (fine.l[c] - coarse.l[c]).abs() + fine.e[c];
+        }
+        let scale = fine.l.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+        if n >= MAX_FILTER_SAMPLES_PER_AXIS || err.iter().all(|e| *e <= tolerance * scale) {
+            return (fine, err, n);
+        }
+        coarse = fine;
+        n *= 2;
     }
 }
 
