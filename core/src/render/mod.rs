@@ -730,43 +730,36 @@ fn render_channels<const C: usize>(scene: &Scene, report: &mut Report, progress:
     let (w, h) = (cam.width, cam.height);
     let n = w * h;
     let want = |k: LayerKind| scene.output.layers.contains(&k);
+    let (want_sun_t, want_error) = (want(LayerKind::SunTransmittance), want(LayerKind::Error));
     let spectral = C != 3;
     let abs_weights = if spectral { Some(abs_rgb_weights()) } else { None };
-    let to_rgb = |v: &[f64; C]| -> [f64; 3] {
-        if spectral {
-            let mut s = [0.0; SPECTRAL_SAMPLES];
-            s.copy_from_slice(v);
-            spectrum::spectrum_to_rec709(&s)
-        } else {
-            [v[0], v[1], v[2]]
-        }
-    };
-    let t_to_rgb = |v: &[f64; C]| -> [f64; 3] {
-        if spectral {
-            let mut s = [0.0; SPECTRAL_SAMPLES];
-            s.copy_from_slice(v);
-            spectrum::spectral_transmittance_to_rgb(&s)
-        } else {
-            [v[0], v[1], v[2]]
-        }
-    };
-    let err_to_rgb = |v: &[f64; C]| -> [f64; 3] {
-        match &abs_weights {
-            Some(wts) => {
-                let mut out = [0.0; 3];
-                for c in 0..3 {
-                    out[c] = v.iter().zip(wts[c].iter()).map(|(e, k)| e.abs() * k).sum();
-                }
-                out
-            }
-            None => [v[0], v[1], v[2]],
-        }
-    };
-    // One sample, reduced to RGB.
+    // One view ray, reduced to RGB (identity for C = 3).
     let sample = |x: f64, y: f64| -> Sample {
         let p = shade_pixel(&cam, bvh.as_ref(), &media, &lights, x, y, tolerance);
-        let l = to_rgb(&p.result.inscatter);
-        let e = err_to_rgb(&p.result.error);
+        let (l, t, st, e) = if spectral {
+            let mut buf = [0.0; SPECTRAL_SAMPLES];
+            buf.copy_from_slice(&p.result.inscatter);
+            let l = spectrum::spectrum_to_rec709(&buf);
+            buf.copy_from_slice(&p.result.transmittance);
+            let t = spectrum::spectral_transmittance_to_rgb(&buf);
+            buf.copy_from_slice(&p.result.sun_transmittance);
+            let st = spectrum::spectral_transmittance_to_rgb(&buf);
+            let mut e = [0.0; 3];
+            if let Some(wts) = &abs_weights {
+                for c in 0..3 {
+                    e[c] = p.result.error.iter().zip(wts[c].iter()).map(|(v, k)| v.abs() * k).sum();
+                }
+            }
+            (l, t, st, e)
+        } else {
+            let r = &p.result;
+            (
+                [r.inscatter[0], r.inscatter[1], r.inscatter[2]],
+                [r.transmittance[0], r.transmittance[1], r.transmittance[2]],
+                [r.sun_transmittance[0], r.sun_transmittance[1], r.sun_transmittance[2]],
+                [r.error[0], r.error[1], r.error[2]],
+            )
+        };
         // Closed forms carry their rounding bound as a relative constant; only
         // numeric pixels need a division.
         let mut rel = p.result.rel_bound;
@@ -779,8 +772,8 @@ fn render_channels<const C: usize>(scene: &Scene, report: &mut Report, progress:
         }
         Sample {
             l,
-            t: t_to_rgb(&p.result.transmittance),
-            st: t_to_rgb(&p.result.sun_transmittance),
+            t,
+            st,
             e,
             rel,
             depth: p.depth,
@@ -788,87 +781,147 @@ fn render_channels<const C: usize>(scene: &Scene, report: &mut Report, progress:
             surface: p.surface,
             numeric: p.numeric,
             in_medium: p.in_medium,
-            edge: false,
         }
     };
 
-    // Pass 1: the centre of every pixel, rows in parallel.
+    // Pass 1: the centre of every pixel, rows in parallel, straight into the
+    // output buffers (plus the surface id for silhouette detection).
+    // Layers not requested get one dummy element per row instead of a full buffer.
+    let mut inscatter = vec![[0f32; 3]; n];
+    let mut transmittance = vec![[1f32; 3]; n];
+    let mut depth = vec![DEPTH_NO_HIT; n];
+    let mut surface = vec![0u32; n];
+    let mut sun_t = vec![[1f32; 3]; if want_sun_t { n } else { h }];
+    let mut error = vec![[0f32; 3]; if want_error { n } else { h }];
+    let (sun_chunk, err_chunk) = (if want_sun_t { w } else { 1 }, if want_error { w } else { 1 });
     let done = AtomicUsize::new(0);
-    let mut centre: Vec<Sample> = Vec::with_capacity(n);
-    centre.par_extend((0..h).into_par_iter().flat_map_iter(|row| {
-        let out: Vec<Sample> = (0..w).map(|col| sample(col as f64 + 0.5, row as f64 + 0.5)).collect();
-        let d = done.fetch_add(1, Ordering::Relaxed) + 1;
-        if let Some(cb) = progress {
-            cb(d, h);
-        }
-        out
-    }));
+    let row_stats: Vec<RowStats> = inscatter
+        .par_chunks_mut(w)
+        .zip(transmittance.par_chunks_mut(w))
+        .zip(depth.par_chunks_mut(w))
+        .zip(surface.par_chunks_mut(w))
+        .zip(sun_t.par_chunks_mut(sun_chunk))
+        .zip(error.par_chunks_mut(err_chunk))
+        .enumerate()
+        .map(|(row, (((((l_row, t_row), d_row), id_row), s_row), e_row))| {
+            let mut st = RowStats::default();
+            for col in 0..w {
+                let s = sample(col as f64 + 0.5, row as f64 + 0.5);
+                l_row[col] = s.l.map(|v| v as f32);
+                t_row[col] = s.t.map(|v| v.clamp(0.0, 1.0) as f32);
+                d_row[col] = if s.hit { s.depth as f32 } else { DEPTH_NO_HIT };
+                id_row[col] = s.surface;
+                if want_sun_t {
+                    s_row[col] = s.st.map(|v| v.clamp(0.0, 1.0) as f32);
+                }
+                if want_error {
+                    e_row[col] = s.e.map(|v| v as f32);
+                }
+                st.add(&s);
+            }
+            let d = done.fetch_add(1, Ordering::Relaxed) + 1;
+            if let Some(cb) = progress {
+                cb(d, h);
+            }
+            st
+        })
+        .collect();
+    let mut stats = RowStats::default();
+    for r in &row_stats {
+        stats.merge(r);
+    }
     t = report.time("render", t);
 
-    // Pass 2: the pixel filter where the surface seen changes (perspective only).
+    // Pass 2: Blender's pixel filter where the centre sample is not good enough.
     let filter = match scene.camera {
         crate::scene::Camera::Perspective(_) => scene.output.pixel_filter,
-        crate::scene::Camera::Equirectangular(_) => crate::render::filter::PixelFilter::None,
+        crate::scene::Camera::Equirectangular(_) => filter::PixelFilter::None,
     };
-    let mut edge_stats = EdgeStats::default();
+    let mut edge = EdgeStats::default();
     if filter.radius() > 0.0 {
         let reach = filter.radius().ceil() as isize;
-        // A pixel needs the filter integral when a neighbour within the filter's
-        // reach sees a different surface AND the two centre samples differ by
-        // more than the tolerance (a fogged-out horizon needs nothing).
-        let differs = |a: &Sample, b: &Sample| -> bool {
-            (0..3).any(|c| {
-                let scale = a.l[c].abs().max(b.l[c].abs());
-                (a.l[c] - b.l[c]).abs() > tolerance * scale || (a.t[c] - b.t[c]).abs() > tolerance
-            })
+        let half_var = 0.5 * filter.variance();
+        let lmax = |i: usize| inscatter[i].iter().fold(0.0f64, |m, v| m.max(f64::from(v.abs())));
+        // The filter's second-order effect (σ²/2)·∇²L (and on T), from the
+        // discrete Laplacian of the centre samples.
+        let lap = |i: usize| -> ([f64; 3], f64) {
+            let (x, y) = (i % w, i / w);
+            if x == 0 || y == 0 || x + 1 == w || y + 1 == h {
+                return ([0.0; 3], 0.0);
+            }
+            let mut el = [0.0; 3];
+            let mut et = 0.0f64;
+            for c in 0..3 {
+                let f = |j: usize| f64::from(inscatter[j][c]);
+                let g = |j: usize| f64::from(transmittance[j][c]);
+                el[c] = half_var * (f(i - 1) + f(i + 1) + f(i - w) + f(i + w) - 4.0 * f(i)).abs();
+                et = et.max(half_var * (g(i - 1) + g(i + 1) + g(i - w) + g(i + w) - 4.0 * g(i)).abs());
+            }
+            (el, et)
         };
-        let is_edge = |i: usize| -> bool {
+        // A silhouette: a neighbour within reach sees another surface and the
+        // centre samples differ by more than the tolerance (a fogged-out
+        // horizon needs nothing).
+        let silhouette = |i: usize| -> bool {
             let (x, y) = ((i % w) as isize, (i / w) as isize);
-            let s0 = &centre[i];
             for dy in -reach..=reach {
                 for dx in -reach..=reach {
                     let (xx, yy) = (x + dx, y + dy);
-                    if xx >= 0 && yy >= 0 && (xx as usize) < w && (yy as usize) < h {
-                        let s1 = &centre[yy as usize * w + xx as usize];
-                        if surface_changes(s0.surface, s1.surface, &owner) && differs(s0, s1) {
-                            return true;
-                        }
+                    if xx < 0 || yy < 0 || xx as usize >= w || yy as usize >= h {
+                        continue;
+                    }
+                    let j = yy as usize * w + xx as usize;
+                    if surface_changes(surface[i], surface[j], &owner)
+                        && (0..3).any(|c| {
+                            let (a, b) = (f64::from(inscatter[i][c]), f64::from(inscatter[j][c]));
+                            (a - b).abs() > tolerance * a.abs().max(b.abs())
+                                || f64::from((transmittance[i][c] - transmittance[j][c]).abs()) > tolerance
+                        })
+                    {
+                        return true;
                     }
                 }
             }
             false
         };
-        // The filter's second-order effect on a smooth image, (σ²/2)·∇²(L, T),
-        // from the discrete Laplacian of the centre samples.
-        let half_var = 0.5 * filter.variance();
-        let lap_err: Vec<([f64; 3], f64)> = (0..n)
+        // Classify every pixel: either its centre sample stands (with the
+        // Laplacian term as its filter error) or it needs the filter integral.
+        let classified: Vec<(Option<usize>, [f64; 3], f64)> = (0..n)
             .into_par_iter()
             .map(|i| {
-                let (x, y) = (i % w, i / w);
-                if x == 0 || y == 0 || x + 1 == w || y + 1 == h {
-                    return ([0.0; 3], 0.0);
+                let (el, et) = lap(i);
+                let m = lmax(i);
+                if et > tolerance || el.iter().any(|e| *e > tolerance * m) || silhouette(i) {
+                    (Some(i), [0.0; 3], 0.0)
+                } else {
+                    let rel = if m > 0.0 {
+                        el.iter().fold(0.0f64, |a, b| a.max(*b)) / m
+                    } else {
+                        0.0
+                    };
+                    (None, el, rel)
                 }
-                let lap = |f: &dyn Fn(&Sample) -> f64| {
-                    f(&centre[i - 1]) + f(&centre[i + 1]) + f(&centre[i - w]) + f(&centre[i + w]) - 4.0 * f(&centre[i])
-                };
-                let mut el = [0.0; 3];
-                let mut et = 0.0f64;
-                for c in 0..3 {
-                    el[c] = half_var * lap(&|s: &Sample| s.l[c]).abs();
-                    et = et.max(half_var * lap(&|s: &Sample| s.t[c]).abs());
-                }
-                (el, et)
             })
             .collect();
-        // Pixels where the centre sample is not good enough: a surface change
-        // within the filter, or a filter effect above the tolerance (a sharp
-        // medium boundary, a narrow glow).
-        let needs_integral = |i: usize| -> bool {
-            let (el, et) = &lap_err[i];
-            let lmax = centre[i].l.iter().fold(0.0f64, |m, v| m.max(v.abs()));
-            *et > tolerance || el.iter().any(|e| *e > tolerance * lmax) || is_edge(i)
-        };
-        let edges: Vec<usize> = (0..n).into_par_iter().filter(|i| needs_integral(*i)).collect();
+        let mut lap_abs = 0.0f64;
+        let mut lap_rel = 0.0f64;
+        let mut edges = Vec::new();
+        for (i, (e, el, rel)) in classified.iter().enumerate() {
+            match e {
+                Some(k) => edges.push(*k),
+                None => {
+                    lap_abs = lap_abs.max(el.iter().fold(0.0f64, |a, b| a.max(*b)));
+                    lap_rel = lap_rel.max(*rel);
+                    if want_error {
+                        for c in 0..3 {
+                            error[i][c] += el[c] as f32;
+                        }
+                    }
+                }
+            }
+        }
+        stats.max_abs += lap_abs;
+        stats.max_rel += lap_rel;
         let filtered: Vec<(usize, Sample, [f64; 3], usize)> = edges
             .par_iter()
             .map(|&i| {
@@ -877,44 +930,32 @@ fn render_channels<const C: usize>(scene: &Scene, report: &mut Report, progress:
                 (i, s, err, per_axis)
             })
             .collect();
-        edge_stats.pixels = filtered.len() as u64;
-        edge_stats.samples = filtered.iter().map(|f| (f.3 * f.3) as u64).sum();
-        for (s, (el, _)) in centre.iter_mut().zip(lap_err) {
-            for c in 0..3 {
-                s.e[c] += el[c];
+        edge.pixels = filtered.len() as u64;
+        for (i, s, err, per_axis) in &filtered {
+            edge.samples += (per_axis * per_axis) as u64;
+            inscatter[*i] = s.l.map(|v| v as f32);
+            transmittance[*i] = s.t.map(|v| v.clamp(0.0, 1.0) as f32);
+            if want_sun_t {
+                sun_t[*i] = s.st.map(|v| v.clamp(0.0, 1.0) as f32);
             }
-            let lmax = s.l.iter().fold(0.0f64, |m, v| m.max(v.abs()));
-            if lmax > 0.0 {
-                s.rel = s.rel.max(el.iter().fold(0.0f64, |m, v| m.max(*v)) / lmax);
+            if want_error {
+                error[*i] = err.map(|v| v as f32);
             }
-        }
-        for (i, s, err, _) in &filtered {
-            let keep_depth = (centre[*i].depth, centre[*i].hit, centre[*i].surface);
-            let mut s = *s;
-            (s.depth, s.hit, s.surface) = keep_depth;
-            s.e = *err;
-            s.edge = true;
-            let lmax = s.l.iter().fold(0.0f64, |m, v| m.max(v.abs()));
-            let rel = if lmax > 0.0 {
-                err.iter().fold(0.0f64, |m, v| m.max(*v)) / lmax
-            } else {
-                0.0
-            };
-            edge_stats.max_abs = edge_stats.max_abs.max(err.iter().fold(0.0f64, |m, v| m.max(*v)));
-            edge_stats.max_rel = edge_stats.max_rel.max(rel);
+            let m = s.l.iter().fold(0.0f64, |a, v| a.max(v.abs()));
+            let e_max = err.iter().fold(0.0f64, |a, v| a.max(*v));
+            let rel = if m > 0.0 { e_max / m } else { 0.0 };
+            edge.max_abs = edge.max_abs.max(e_max);
+            edge.max_rel = edge.max_rel.max(rel);
             if rel > tolerance {
-                edge_stats.not_converged += 1;
+                edge.not_converged += 1;
             }
-            // Filter-integrated pixels are summarised separately (edge_*), not in max_abs/max_rel.
-            s.rel = 0.0;
-            centre[*i] = s;
         }
         report.plan.computed(
             format!("pixel filter integral on {} pixels (silhouettes, sharp medium boundaries)", filtered.len()),
             format!(
-                "Blackman-Harris {:.2} px (Blender's), n×n midpoint rule doubling from 4 to 16 per axis until two estimates agree to the tolerance: {} samples",
+                "Blackman-Harris {:.2} px (Blender's), n×n midpoint rule doubling from 4 to {MAX_FILTER_SAMPLES_PER_AXIS} per axis until two estimates agree to the tolerance: {} samples",
                 2.0 * filter.radius(),
-                edge_stats.samples
+                edge.samples
             ),
         );
         report.plan.left_out(
@@ -930,67 +971,38 @@ fn render_channels<const C: usize>(scene: &Scene, report: &mut Report, progress:
     }
     let _ = t;
 
-    // Write the layers.
-    let want_sun_t = want(LayerKind::SunTransmittance);
-    let want_error = want(LayerKind::Error);
-    let inscatter: Vec<[f32; 3]> = centre.iter().map(|s| s.l.map(|v| v as f32)).collect();
-    let transmittance: Vec<[f32; 3]> = centre.iter().map(|s| s.t.map(|v| v.clamp(0.0, 1.0) as f32)).collect();
-    let depth: Vec<f32> = centre.iter().map(|s| if s.hit { s.depth as f32 } else { DEPTH_NO_HIT }).collect();
-    let sun_t: Vec<[f32; 3]> = if want_sun_t {
-        centre.iter().map(|s| s.st.map(|v| v.clamp(0.0, 1.0) as f32)).collect()
-    } else {
-        Vec::new()
-    };
-    let error: Vec<[f32; 3]> = if want_error {
-        centre.iter().map(|s| s.e.map(|v| v as f32)).collect()
-    } else {
-        Vec::new()
-    };
-    let mut max_abs_v = 0.0f64;
-    let mut max_rel_v = 0.0f64;
-    let (mut hits, mut vac, mut numeric, mut unconv) = (0u64, 0u64, 0u64, 0u64);
-    for s in &centre {
-        if !s.edge {
-            max_abs_v = max_abs_v.max(s.e.iter().fold(0.0f64, |m, v| m.max(*v)));
-        }
-        max_rel_v = max_rel_v.max(s.rel);
-        hits += s.hit as u64;
-        vac += (!s.in_medium) as u64;
-        if let Some(conv) = s.numeric {
-            numeric += 1;
-            unconv += (!conv) as u64;
-        }
-    }
     let pixels = n as u64;
     report.stats.pixels = pixels;
-    report.stats.rays_hit_surface = hits;
-    report.stats.rays_without_medium = vac;
-    if vac > 0 && !media.is_empty() {
-        report
-            .plan
-            .left_out(format!("scattering integral on {vac} view rays"), "the ray crosses no medium");
+    report.stats.rays_hit_surface = stats.hits;
+    report.stats.rays_without_medium = stats.vacuum;
+    if stats.vacuum > 0 && !media.is_empty() {
+        report.plan.left_out(
+            format!("scattering integral on {} view rays", stats.vacuum),
+            "the ray crosses no medium",
+        );
     }
     report.error = crate::report::ErrorEstimate {
         sun_disc_rel: report.error.sun_disc_rel,
         tolerance,
-        max_abs: max_abs_v,
-        max_rel: max_rel_v,
+        max_abs: stats.max_abs,
+        max_rel: stats.max_rel,
         f32_storage_rel: f64::from(f32::EPSILON) / 2.0,
-        pixels_closed_form: pixels - numeric - vac,
-        pixels_numeric: numeric,
-        pixels_not_converged: unconv,
-        edge_pixels: edge_stats.pixels,
-        edge_max_abs: edge_stats.max_abs,
-        edge_max_rel: edge_stats.max_rel,
-        edge_pixels_not_converged: edge_stats.not_converged,
-        method: if numeric == 0 {
-            "closed forms only: the estimate bounds floating-point rounding of the closed form (exact model); the f32 storage error dominates".into()
-        } else {
-            "closed forms where one medium is on the ray (rounding bound); Gauss-Kronrod G7-K15 error estimate where several media overlap"
-                .into()
-        },
+        pixels_closed_form: pixels - stats.numeric - stats.vacuum,
+        pixels_numeric: stats.numeric,
+        pixels_not_converged: stats.not_converged,
+        edge_pixels: edge.pixels,
+        edge_max_abs: edge.max_abs,
+        edge_max_rel: edge.max_rel,
+        edge_pixels_not_converged: edge.not_converged,
+        method: format!(
+            "{}; where the centre sample stands for the filtered pixel, plus the filter's second-order effect (σ²/2)·∇²L (bounds are added: max over pixels of each part); pixels integrated against the filter are summarised in edge_*",
+            if stats.numeric == 0 {
+                "closed forms: floating-point rounding bound of the closed form (exact model)"
+            } else {
+                "closed forms where one medium is on the ray (rounding bound); Gauss-Kronrod G7-K15 error estimate where several media overlap"
+            }
+        ),
     };
-    let layers: Vec<LayerKind> = scene.output.layers.clone();
     for k in [
         LayerKind::Inscatter,
         LayerKind::Transmittance,
@@ -1002,6 +1014,12 @@ fn render_channels<const C: usize>(scene: &Scene, report: &mut Report, progress:
             report.plan.left_out(format!("layer {k}"), "not requested in output.layers");
         }
     }
+    if !want_sun_t {
+        sun_t = Vec::new();
+    }
+    if !want_error {
+        error = Vec::new();
+    }
     Images {
         width: w,
         height: h,
@@ -1010,7 +1028,39 @@ fn render_channels<const C: usize>(scene: &Scene, report: &mut Report, progress:
         depth,
         sun_transmittance: sun_t,
         error,
-        layers,
+        layers: scene.output.layers.clone(),
+    }
+}
+
+/// Per-row counts and error maxima of pass 1.
+#[derive(Debug, Default, Clone, Copy)]
+struct RowStats {
+    hits: u64,
+    vacuum: u64,
+    numeric: u64,
+    not_converged: u64,
+    max_abs: f64,
+    max_rel: f64,
+}
+
+impl RowStats {
+    fn add(&mut self, s: &Sample) {
+        self.hits += s.hit as u64;
+        self.vacuum += (!s.in_medium) as u64;
+        if let Some(conv) = s.numeric {
+            self.numeric += 1;
+            self.not_converged += (!conv) as u64;
+        }
+        self.max_abs = self.max_abs.max(s.e.iter().fold(0.0f64, |m, v| m.max(*v)));
+        self.max_rel = self.max_rel.max(s.rel);
+    }
+    fn merge(&mut self, o: &RowStats) {
+        self.hits += o.hits;
+        self.vacuum += o.vacuum;
+        self.numeric += o.numeric;
+        self.not_converged += o.not_converged;
+        self.max_abs = self.max_abs.max(o.max_abs);
+        self.max_rel = self.max_rel.max(o.max_rel);
     }
 }
 
@@ -1027,8 +1077,6 @@ struct Sample {
     surface: u32,
     numeric: Option<bool>,
     in_medium: bool,
-    /// Integrated against the pixel filter (summarised separately).
-    edge: bool,
 }
 
 #[derive(Debug, Default)]
@@ -1087,6 +1135,7 @@ fn filter_pixel(
                     (a, b) => a.or(b),
                 };
                 acc.in_medium |= s.in_medium;
+                acc.rel = acc.rel.max(s.rel);
             }
         }
         acc
