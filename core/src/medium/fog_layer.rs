@@ -133,7 +133,7 @@ impl<const C: usize> FogLayer<C> {
             if !self.sun_is_direct(sun.to_sun) {
                 continue;
             }
-            let ph = self.phase.eval(ray.dir.dot(sun.to_sun));
+            let ph = sun.phase(&self.phase, ray.dir);
             let ts = self.sun_transmittance_at(p, sun.to_sun);
             for c in 0..C {
                 out[c] += ph * sun.irradiance[c] * ts[c];
@@ -167,7 +167,7 @@ impl<const C: usize> FogLayer<C> {
                 continue;
             }
             let sin_phi = sun.to_sun.z;
-            let ph = self.phase.eval(ray.dir.dot(sun.to_sun));
+            let ph = sun.phase(&self.phase, ray.dir);
             for c in 0..C {
                 let b = self.extinction[c];
                 if b == 0.0 || self.scattering[c] == 0.0 {

@@ -103,9 +103,8 @@ impl<const C: usize> HeightFog<C> {
             *o = (self.rayleigh_scattering[c] + self.mie_scattering[c]) * lights.ambient[c];
         }
         for sun in &lights.suns {
-            let mu = dir.dot(sun.to_sun);
-            let pr = rayleigh.eval(mu);
-            let pm = self.mie_phase.eval(mu);
+            let pr = sun.phase(&rayleigh, dir);
+            let pm = sun.phase(&self.mie_phase, dir);
             for (c, o) in out.iter_mut().enumerate() {
                 *o += (self.rayleigh_scattering[c] * pr + self.mie_scattering[c] * pm) * sun.irradiance[c];
             }
@@ -191,10 +190,7 @@ mod tests {
     #[test]
     fn extreme_geometry_stays_finite() {
         let lights = LightSet {
-            suns: vec![SunSource {
-                to_sun: DVec3::Z,
-                irradiance: [1.0; 3],
-            }],
+            suns: vec![SunSource::point(DVec3::Z, [1.0; 3])],
             ambient: [0.1; 3],
         };
         for &h in &[1.0, 1e5] {

@@ -117,7 +117,7 @@ impl<const C: usize> Homogeneous<C> {
             *o = lights.ambient[c];
         }
         for sun in &lights.suns {
-            let ph = self.phase.eval(ray.dir.dot(sun.to_sun));
+            let ph = sun.phase(&self.phase, ray.dir);
             let ts = self.sun_transmittance_at(p, sun.to_sun);
             for c in 0..C {
                 out[c] += ph * sun.irradiance[c] * ts[c];
@@ -149,7 +149,7 @@ impl<const C: usize> Homogeneous<C> {
             r.inscatter[c] = self.scattering[c] * lights.ambient[c] / k * one_minus_t;
         }
         for sun in &lights.suns {
-            let ph = self.phase.eval(ray.dir.dot(sun.to_sun));
+            let ph = sun.phase(&self.phase, ray.dir);
             match self.bounds {
                 None => {
                     for c in 0..C {
@@ -250,10 +250,7 @@ mod tests {
             bounds: Some((DVec3::new(-2.0, -3.0, 0.0), DVec3::new(4.0, 3.0, 5.0))),
         };
         let lights = LightSet {
-            suns: vec![SunSource {
-                to_sun: DVec3::new(0.3, -0.2, 0.9).normalize(),
-                irradiance: [1.0, 2.0, 3.0],
-            }],
+            suns: vec![SunSource::point(DVec3::new(0.3, -0.2, 0.9).normalize(), [1.0, 2.0, 3.0])],
             ambient: [0.0; 3],
         };
         for dir in [

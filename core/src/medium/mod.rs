@@ -18,12 +18,37 @@ pub mod phase;
 use glam::DVec3;
 
 /// A sun reduced to what the media need: direction and irradiance per channel.
-#[derive(Debug, Clone, Copy)]
+#[derive(Debug, Clone)]
 pub struct SunSource<const C: usize> {
     /// Unit vector from the scene towards the sun.
     pub to_sun: DVec3,
     /// Irradiance on a surface facing the sun, W·m⁻² per channel.
     pub irradiance: [f64; C],
+    /// Disc-averaged phase tables for the phase functions where treating this
+    /// sun as a point would exceed the tolerance; empty otherwise.
+    pub disc: std::sync::Arc<Vec<phase::DiscPhase>>,
+}
+
+impl<const C: usize> SunSource<C> {
+    /// A sun treated as one direction.
+    pub fn point(to_sun: DVec3, irradiance: [f64; C]) -> Self {
+        SunSource {
+            to_sun,
+            irradiance,
+            disc: Default::default(),
+        }
+    }
+
+    /// The phase function `p` for light from this sun scattered into the view
+    /// direction `view_dir`: disc-averaged where tabulated, else a point evaluation.
+    #[inline]
+    pub fn phase(&self, p: &phase::PhaseFunction, view_dir: DVec3) -> f64 {
+        let mu = view_dir.dot(self.to_sun);
+        match self.disc.iter().find(|d| d.phase == *p) {
+            Some(d) => d.eval(mu),
+            None => p.eval(mu),
+        }
+    }
 }
 
 /// The lights that media scatter, per channel.

@@ -163,6 +163,76 @@ impl PhaseFunction {
     }
 }
 
+/// A phase function averaged over a sun disc, tabulated against the angle θ
+/// between the view direction and the sun's centre: used instead of the point
+/// evaluation when treating the sun as a point would exceed the tolerance.
+///
+/// Nodes are placed by recursive bisection of `[0, π]` until linear
+/// interpolation between two nodes matches [`PhaseFunction::disc_average`] at
+/// the midpoint to `rel_tol` (and `θ` steps are below a quarter of the disc
+/// radius near the disc), so the table's own error is bounded by `rel_tol`.
+#[derive(Debug, Clone, PartialEq)]
+pub struct DiscPhase {
+    /// The phase function.
+    pub phase: PhaseFunction,
+    /// Angular radius of the disc, rad.
+    pub radius: f64,
+    thetas: Vec<f64>,
+    values: Vec<f64>,
+}
+
+impl DiscPhase {
+    /// Tabulates `phase` averaged over a disc of angular radius `radius` (rad).
+    pub fn build(phase: PhaseFunction, radius: f64, rel_tol: f64) -> DiscPhase {
+        let f = |t: f64| phase.disc_average(t, radius);
+        let mut thetas = vec![0.0];
+        let mut values = vec![f(0.0)];
+        // Work stack of intervals (a, b, f(a), f(b)), left to right.
+        let mut stack = vec![(0.0, PI, values[0], f(PI))];
+        let min_step = (radius * 1e-3).max(1e-9);
+        while let Some((a, b, fa, fb)) = stack.pop() {
+            let m = 0.5 * (a + b);
+            let fm = f(m);
+            let lin = 0.5 * (fa + fb);
+            let coarse_near_disc = a < 4.0 * radius && b - a > 0.25 * radius;
+            if (b - a > min_step) && ((fm - lin).abs() > rel_tol * fm.abs() || coarse_near_disc || b - a > 0.1) {
+                // Right half first on the stack so the left half is finished first.
+                stack.push((m, b, fm, fb));
+                stack.push((a, m, fa, fm));
+            } else {
+                thetas.push(b);
+                values.push(fb);
+            }
+        }
+        DiscPhase {
+            phase,
+            radius,
+            thetas,
+            values,
+        }
+    }
+
+    /// Disc-averaged phase value, sr⁻¹, for `mu = cos θ` (view direction · direction to the sun's centre).
+    #[inline]
+    pub fn eval(&self, mu: f64) -> f64 {
+        let theta = mu.clamp(-1.0, 1.0).acos();
+        let i = self.thetas.partition_point(|t| *t <= theta).clamp(1, self.thetas.len() - 1);
+        let (a, b) = (self.thetas[i - 1], self.thetas[i]);
+        let u = if b > a { (theta - a) / (b - a) } else { 0.0 };
+        self.values[i - 1] + u * (self.values[i] - self.values[i - 1])
+    }
+
+    /// Number of table nodes.
+    pub fn len(&self) -> usize {
+        self.thetas.len()
+    }
+
+    /// Whether the table is empty (never, after `build`).
+    pub fn is_empty(&self) -> bool {
+        self.thetas.is_empty()
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -234,6 +304,21 @@ mod tests {
         assert!(PhaseFunction::Isotropic.point_sun_error(d).0 < 1e-9);
         // A very sharp lobe: the blur is large and the estimate says so.
         assert!(PhaseFunction::HenyeyGreenstein { g: 0.995 }.point_sun_error(d).0 > 0.05);
+    }
+
+    #[test]
+    fn disc_phase_table_matches_direct_averages() {
+        let p = PhaseFunction::HenyeyGreenstein { g: 0.9 };
+        let r = 0.5 * 0.526f64.to_radians();
+        let tol = 1e-5;
+        let t = DiscPhase::build(p, r, tol);
+        for i in 0..200 {
+            let theta = PI * (i as f64 / 199.0).powi(3);
+            let direct = p.disc_average(theta, r);
+            let tab = t.eval(theta.cos());
+            assert!((tab - direct).abs() <= 2.0 * tol * direct, "θ={theta}: {tab} vs {direct}");
+        }
+        assert!(t.len() < 5000, "{} nodes", t.len());
     }
 
     #[test]

@@ -1,10 +1,11 @@
 //! Blender's pixel filter, so that edges composite cleanly over a Cycles render.
 //!
-//! Cycles filters every pixel with a separable Blackman–Harris window of
-//! "Filter Size" 1.5 px by default (`filter_func_blackman_harris` in Cycles'
-//! film code):
+//! Cycles filters every pixel with a separable Blackman–Harris window whose
+//! "Filter Size" is 1.5 px by default. Cycles' film code (`filter_table`)
+//! doubles the width for Blackman–Harris before tabulating it, so the window
+//! spans `±width` px around the pixel centre:
 //! `w(x) = 0.35875 − 0.48829 cos 2πt + 0.14128 cos 4πt − 0.01168 cos 6πt`,
-//! `t = x/width + 1/2`, for `|x| ≤ width/2`, applied along x and y.
+//! `t = x/(2·width) + 1/2`, for `|x| ≤ width`, applied along x and y.
 //!
 //! Tyndall's images are smooth except where a view ray's surface changes
 //! (silhouettes). A pixel is treated as a silhouette when a neighbour within
@@ -52,10 +53,10 @@ impl PixelFilter {
     pub fn weight(&self, x: f64) -> f64 {
         match *self {
             PixelFilter::BlackmanHarris { width_px } => {
-                if x.abs() > 0.5 * width_px {
+                if x.abs() > width_px {
                     return 0.0;
                 }
-                let a = 2.0 * PI * (x / width_px + 0.5);
+                let a = 2.0 * PI * (x / (2.0 * width_px) + 0.5);
                 0.35875 - 0.48829 * a.cos() + 0.14128 * (2.0 * a).cos() - 0.01168 * (3.0 * a).cos()
             }
             PixelFilter::None => {
@@ -68,10 +69,10 @@ impl PixelFilter {
         }
     }
 
-    /// Half of the support, px.
+    /// Half of the support, px (Cycles' doubled Blackman–Harris width: `width_px`).
     pub fn radius(&self) -> f64 {
         match *self {
-            PixelFilter::BlackmanHarris { width_px } => 0.5 * width_px,
+            PixelFilter::BlackmanHarris { width_px } => width_px,
             PixelFilter::None => 0.0,
         }
     }
@@ -109,15 +110,15 @@ mod tests {
         let f = PixelFilter::default();
         // Peak 1.0 at the centre (0.35875 + 0.48829 + 0.14128 + 0.01168), ~6e-5 at the ends.
         assert!((f.weight(0.0) - 1.0).abs() < 1e-12);
-        assert!((f.weight(0.75) - 6e-5).abs() < 1e-5);
-        assert_eq!(f.weight(0.76), 0.0);
+        assert!((f.weight(1.5) - 6e-5).abs() < 1e-5);
+        assert_eq!(f.weight(1.51), 0.0);
         let s: f64 = f.nodes(16).iter().map(|p| p.1).sum();
         assert!((s - 1.0).abs() < 1e-12);
-        // Variance of the 4-term Blackman–Harris window on [−w/2, w/2]: computed
+        // Variance of the 4-term Blackman–Harris window on [−W/2, W/2], W = 2·1.5 px: computed
         // in closed form, σ² = w²·(1/12 − (1/(2π²))·(a1 − a2/4 + a3/9)/a0) with
         // a = (0.35875, 0.48829, 0.14128, 0.01168).
         let (a0, a1, a2, a3) = (0.35875, 0.48829, 0.14128, 0.01168);
-        let w: f64 = 1.5;
+        let w: f64 = 3.0;
         let exact = w * w * (1.0 / 12.0 - (a1 - a2 / 4.0 + a3 / 9.0) / (2.0 * PI * PI * a0));
         assert!((f.variance() - exact).abs() < 1e-6 * exact, "{} vs {exact}", f.variance());
     }

@@ -25,6 +25,7 @@ use crate::geometry::bvh::Bvh;
 use crate::geometry::camera::CameraRays;
 use crate::geometry::world_triangles;
 use crate::io::ImageLayer;
+use crate::medium;
 use crate::medium::fog_layer::FogLayer;
 use crate::medium::height_fog::HeightFog;
 use crate::medium::homogeneous::Homogeneous;
@@ -329,7 +330,7 @@ fn prepare_lights<const C: usize>(scene: &Scene, report: &mut Report) -> LightSe
                         to_sun.z.asin().to_degrees()
                     ),
                 );
-                set.suns.push(SunSource { to_sun, irradiance });
+                set.suns.push(SunSource::point(to_sun, irradiance));
             }
             Light::Ambient { color, radiance, .. } => {
                 if *radiance == 0.0 || color.iter().all(|c| *c == 0.0) {
@@ -705,9 +706,9 @@ fn integrate_media<const C: usize>(
 fn render_channels<const C: usize>(scene: &Scene, report: &mut Report, progress: Option<Progress<'_>>) -> Images {
     let t0 = Instant::now();
     let cam = CameraRays::new(&scene.camera);
-    let lights = prepare_lights::<C>(scene, report);
+    let mut lights = prepare_lights::<C>(scene, report);
     let media = prepare_media::<C>(scene, &lights, report);
-    report.error.sun_disc_rel = sun_disc_effect(scene, &media, report);
+    report.error.sun_disc_rel = sun_disc_effect(scene, &media, &mut lights, report);
     let tolerance = scene.output.tolerance;
     let mut t = report.time("plan", t0);
 
@@ -841,21 +842,45 @@ fn render_channels<const C: usize>(scene: &Scene, report: &mut Report, progress:
     if filter.radius() > 0.0 {
         let reach = filter.radius().ceil() as isize;
         let half_var = 0.5 * filter.variance();
+        // Centre samples of a ring `reach` pixels wide around the image, so the
+        // Laplacian and the silhouette test work on the border pixels too
+        // (Cycles' filter reaches outside the frame as well).
+        let ring: std::collections::HashMap<(isize, isize), CentreSample> = {
+            let (wi, hi) = (w as isize, h as isize);
+            let coords: Vec<(isize, isize)> = (-reach..hi + reach)
+                .flat_map(|y| (-reach..wi + reach).map(move |x| (x, y)))
+                .filter(|&(x, y)| x < 0 || y < 0 || x >= wi || y >= hi)
+                .collect();
+            coords
+                .into_par_iter()
+                .map(|(x, y)| {
+                    let s = sample(x as f64 + 0.5, y as f64 + 0.5);
+                    ((x, y), (s.l.map(|v| v as f32), s.t.map(|v| v.clamp(0.0, 1.0) as f32), s.surface))
+                })
+                .collect()
+        };
+        let at = |x: isize, y: isize| -> CentreSample {
+            if x >= 0 && y >= 0 && (x as usize) < w && (y as usize) < h {
+                let j = y as usize * w + x as usize;
+                (inscatter[j], transmittance[j], surface[j])
+            } else {
+                ring.get(&(x, y)).copied().unwrap_or(([0.0; 3], [1.0; 3], 0))
+            }
+        };
         let lmax = |i: usize| inscatter[i].iter().fold(0.0f64, |m, v| m.max(f64::from(v.abs())));
         // The filter's second-order effect (σ²/2)·∇²L (and on T), from the
         // discrete Laplacian of the centre samples.
         let lap = |i: usize| -> ([f64; 3], f64) {
-            let (x, y) = (i % w, i / w);
-            if x == 0 || y == 0 || x + 1 == w || y + 1 == h {
-                return ([0.0; 3], 0.0);
-            }
+            let (x, y) = ((i % w) as isize, (i / w) as isize);
+            let nb = [at(x - 1, y), at(x + 1, y), at(x, y - 1), at(x, y + 1)];
+            let me = at(x, y);
             let mut el = [0.0; 3];
             let mut et = 0.0f64;
             for c in 0..3 {
-                let f = |j: usize| f64::from(inscatter[j][c]);
-                let g = |j: usize| f64::from(transmittance[j][c]);
-                el[c] = half_var * (f(i - 1) + f(i + 1) + f(i - w) + f(i + w) - 4.0 * f(i)).abs();
-                et = et.max(half_var * (g(i - 1) + g(i + 1) + g(i - w) + g(i + w) - 4.0 * g(i)).abs());
+                let sl: f64 = nb.iter().map(|n| f64::from(n.0[c])).sum::<f64>() - 4.0 * f64::from(me.0[c]);
+                let st: f64 = nb.iter().map(|n| f64::from(n.1[c])).sum::<f64>() - 4.0 * f64::from(me.1[c]);
+                el[c] = half_var * sl.abs();
+                et = et.max(half_var * st.abs());
             }
             (el, et)
         };
@@ -864,18 +889,14 @@ fn render_channels<const C: usize>(scene: &Scene, report: &mut Report, progress:
         // horizon needs nothing).
         let silhouette = |i: usize| -> bool {
             let (x, y) = ((i % w) as isize, (i / w) as isize);
+            let me = at(x, y);
             for dy in -reach..=reach {
                 for dx in -reach..=reach {
-                    let (xx, yy) = (x + dx, y + dy);
-                    if xx < 0 || yy < 0 || xx as usize >= w || yy as usize >= h {
-                        continue;
-                    }
-                    let j = yy as usize * w + xx as usize;
-                    if surface_changes(surface[i], surface[j], &owner)
+                    let other = at(x + dx, y + dy);
+                    if surface_changes(me.2, other.2, &owner)
                         && (0..3).any(|c| {
-                            let (a, b) = (f64::from(inscatter[i][c]), f64::from(inscatter[j][c]));
-                            (a - b).abs() > tolerance * a.abs().max(b.abs())
-                                || f64::from((transmittance[i][c] - transmittance[j][c]).abs()) > tolerance
+                            let (a, b) = (f64::from(me.0[c]), f64::from(other.0[c]));
+                            (a - b).abs() > tolerance * a.abs().max(b.abs()) || f64::from((me.1[c] - other.1[c]).abs()) > tolerance
                         })
                     {
                         return true;
@@ -953,8 +974,9 @@ fn render_channels<const C: usize>(scene: &Scene, report: &mut Report, progress:
         report.plan.computed(
             format!("pixel filter integral on {} pixels (silhouettes, sharp medium boundaries)", filtered.len()),
             format!(
-                "Blackman-Harris {:.2} px (Blender's), n×n midpoint rule doubling from 4 to {MAX_FILTER_SAMPLES_PER_AXIS} per axis until two estimates agree to the tolerance: {} samples",
-                2.0 * filter.radius(),
+                "Blackman-Harris, filter size {:.2} px (Blender's; window ±{:.2} px as Cycles doubles it), n×n midpoint rule doubling from 4 to {MAX_FILTER_SAMPLES_PER_AXIS} per axis until two estimates agree to the tolerance: {} samples",
+                filter.radius(),
+                filter.radius(),
                 edge.samples
             ),
         );
@@ -1031,6 +1053,9 @@ fn render_channels<const C: usize>(scene: &Scene, report: &mut Report, progress:
         layers: scene.output.layers.clone(),
     }
 }
+
+/// A centre sample as stored in the images: (L, T, surface id).
+type CentreSample = ([f32; 3], [f32; 3], u32);
 
 /// Per-row counts and error maxima of pass 1.
 #[derive(Debug, Default, Clone, Copy)]
@@ -1157,50 +1182,81 @@ fn filter_pixel(
     }
 }
 
-/// The sun disc is not integrated over: each sun is one direction. This
-/// measures what that leaves out — the largest relative change of any phase
-/// function in the scene when averaged over the disc — and reports it.
-fn sun_disc_effect<const C: usize>(scene: &Scene, media: &[PreparedMedium<C>], report: &mut Report) -> f64 {
+/// Each sun is one direction unless that is not good enough: for every
+/// phase function in the scene, the largest relative change of the sun's
+/// in-scatter from averaging over the disc is measured; where it exceeds the
+/// tolerance the disc-averaged phase function is tabulated (to a quarter of
+/// the tolerance) and used instead. Returns the remaining relative error.
+fn sun_disc_effect<const C: usize>(scene: &Scene, media: &[PreparedMedium<C>], lights: &mut LightSet<C>, report: &mut Report) -> f64 {
     let mut phases: Vec<PhaseFunction> = Vec::new();
     for m in media {
-        match m {
-            PreparedMedium::Homogeneous(h) => phases.push(h.phase),
-            PreparedMedium::HeightFog(h) => {
-                phases.push(PhaseFunction::Rayleigh);
-                phases.push(h.mie_phase);
+        let ps = match m {
+            PreparedMedium::Homogeneous(h) => vec![h.phase],
+            PreparedMedium::HeightFog(h) => vec![PhaseFunction::Rayleigh, h.mie_phase],
+            PreparedMedium::FogLayer(f) => vec![f.phase],
+        };
+        for p in ps {
+            if !phases.contains(&p) {
+                phases.push(p);
             }
-            PreparedMedium::FogLayer(f) => phases.push(f.phase),
         }
     }
+    let tol = scene.output.tolerance;
     let mut worst = 0.0f64;
+    let mut k = 0;
     for (i, l) in scene.lights.iter().enumerate() {
-        let Light::Sun { angular_diameter_deg, .. } = l else { continue };
+        let Light::Sun {
+            angular_diameter_deg,
+            strength_w_m2,
+            color,
+            ..
+        } = l
+        else {
+            continue;
+        };
+        if *strength_w_m2 == 0.0 || color.iter().all(|c| *c == 0.0) {
+            continue;
+        }
+        let sun_index = k;
+        k += 1;
         if phases.is_empty() {
             continue;
         }
-        let (mut rel, mut at, mut which) = (0.0f64, 0.0, String::new());
+        let diameter = angular_diameter_deg.to_radians();
+        let mut tables = Vec::new();
+        let (mut residual, mut at, mut which) = (0.0f64, 0.0, String::new());
         for p in &phases {
-            let (r, theta) = p.point_sun_error(angular_diameter_deg.to_radians());
-            if r > rel {
-                (rel, at, which) = (r, theta, p.describe());
+            let (r, theta) = p.point_sun_error(diameter);
+            if r > tol {
+                let t = medium::phase::DiscPhase::build(*p, 0.5 * diameter, 0.25 * tol);
+                report.plan.computed(
+                    format!("{}: sun disc ({angular_diameter_deg}° wide) for {}", light_label(i, l), p.describe()),
+                    format!(
+                        "as a point the sun's in-scatter would be off by up to {r:.2e} ({:.3}° from the sun), above the tolerance: the phase function averaged over the disc is tabulated at {} angles to {:.1e} relative",
+                        theta.to_degrees(),
+                        t.len(),
+                        0.25 * tol
+                    ),
+                );
+                tables.push(t);
+                residual = residual.max(0.25 * tol);
+            } else if r >= residual {
+                (residual, at, which) = (r, theta, p.describe());
             }
         }
-        report.plan.left_out(
-            format!("{}: sun disc ({angular_diameter_deg}° wide)", light_label(i, l)),
-            format!(
-                "in-scatter treats the sun as one direction; averaging the phase function over the disc would change the sun's in-scatter by at most {rel:.2e} relative ({which}, {:.3}° from the sun)",
-                at.to_degrees()
-            ),
-        );
-        if rel > scene.output.tolerance {
-            report.warnings.push(format!(
-                "{}: treating the sun as a point changes its in-scatter by up to {rel:.2e}, more than the tolerance {:.1e}, near {:.3}° from the sun ({which})",
-                light_label(i, l),
-                scene.output.tolerance,
-                at.to_degrees()
-            ));
+        if tables.len() < phases.len() {
+            report.plan.left_out(
+                format!("{}: sun disc ({angular_diameter_deg}° wide){}", light_label(i, l), if tables.is_empty() { "" } else { " for the other phase functions" }),
+                format!(
+                    "treated as one direction: averaging over the disc would change the sun's in-scatter by at most {residual:.2e} relative ({which}, {:.3}° from the sun), within the tolerance",
+                    at.to_degrees()
+                ),
+            );
         }
-        worst = worst.max(rel);
+        if !tables.is_empty() {
+            lights.suns[sun_index].disc = std::sync::Arc::new(tables);
+        }
+        worst = worst.max(residual);
     }
     worst
 }
