@@ -1,0 +1,478 @@
+"""The Python API: loading scenes, rendering to numpy arrays, the report, errors, the GIL.
+
+Expected values are computed here from the scene parameters, not read back from
+the renderer.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+import tyndall
+
+EXAMPLES_DIR = Path(__file__).resolve().parent.parent / "examples"
+EXAMPLE_FILES = sorted(EXAMPLES_DIR.glob("*.json"))
+RGB_LAYERS = {"inscatter", "transmittance", "sun_transmittance", "error"}
+DEFAULT_LAYERS = {"inscatter", "transmittance", "depth"}
+DEPTH_NO_HIT = np.float32(1e10)
+
+SceneDict = dict[str, Any]
+MakeScene = Callable[..., SceneDict]
+
+
+def _available_cores() -> int:
+    if hasattr(os, "sched_getaffinity"):
+        return len(os.sched_getaffinity(0))
+    return os.cpu_count() or 1
+
+
+# ---------------------------------------------------------------- loading
+
+
+def test_examples_exist() -> None:
+    names = {p.stem for p in EXAMPLE_FILES}
+    assert {"valley_height_fog", "fog_layer_sunrise"} <= names
+
+
+@pytest.mark.parametrize("path", EXAMPLE_FILES, ids=lambda p: p.stem)
+def test_load_scene_each_example(path: Path) -> None:
+    raw = json.loads(path.read_text())
+    for arg in (str(path), path):
+        scene = tyndall.load_scene(arg)
+        assert isinstance(scene, tyndall.Scene)
+        assert scene.resolution == tuple(raw["camera"]["resolution"])
+        assert f"{raw['camera']['resolution'][0]}x{raw['camera']['resolution'][1]}" in repr(scene)
+    # to_json round-trips through scene_from_json to the same scene.
+    text = scene.to_json()
+    again = tyndall.scene_from_json(text, "roundtrip")
+    assert again.to_json() == text
+    assert json.loads(text)["camera"]["resolution"] == raw["camera"]["resolution"]
+
+
+# ---------------------------------------------------------------- render: arrays
+
+
+@pytest.mark.parametrize("path", EXAMPLE_FILES, ids=lambda p: p.stem)
+def test_render_each_example_returns_float32_layers(path: Path) -> None:
+    raw = json.loads(path.read_text())
+    width, height = raw["camera"]["resolution"]
+    wanted = set(raw.get("output", {}).get("layers", DEFAULT_LAYERS))
+    layers, report = tyndall.render(tyndall.load_scene(path))
+    assert isinstance(layers, dict)
+    assert set(layers) == wanted
+    for name, arr in layers.items():
+        assert isinstance(arr, np.ndarray)
+        assert arr.dtype == np.float32, name
+        expected_shape = (height, width) if name == "depth" else (height, width, 3)
+        assert arr.shape == expected_shape, name
+        assert np.all(np.isfinite(arr)), name
+    assert np.all(layers["inscatter"] >= 0.0)
+    assert layers["inscatter"].max() > 0.0
+    t = layers["transmittance"]
+    assert np.all((t >= 0.0) & (t <= 1.0))
+    depth = layers["depth"]
+    hit = depth != DEPTH_NO_HIT
+    assert np.all(depth[hit] > 0.0)
+    # Both examples have a ground plane below a camera above it: some rays hit, some see sky.
+    assert hit.any() and (~hit).any()
+    assert report["stats"]["rays_hit_surface"] == int(hit.sum())
+    if "error" in layers:
+        # The report summarises the per-pixel error layer (f64 before f32 storage): max_abs,
+        # and edge_max_abs for pixels integrated against the pixel filter.
+        summary = max(report["error"]["max_abs"], report["error"].get("edge_max_abs", 0.0))
+        assert float(layers["error"].max()) <= summary * (1.0 + 1e-6)
+        assert np.all(layers["error"] >= 0.0)
+    assert report["resolution"] == [width, height]
+    assert report["stats"]["pixels"] == width * height
+
+
+def test_default_layers_are_inscatter_transmittance_depth(small_scene: MakeScene) -> None:
+    layers, report = tyndall.render(small_scene())
+    assert set(layers) == DEFAULT_LAYERS
+    left_out = {item["what"] for item in report["plan"]["left_out"]}
+    assert {"layer sun_transmittance", "layer error"} <= left_out
+
+
+def test_row_zero_is_the_top_row(small_scene: MakeScene) -> None:
+    """A haze box above the eye height and a ground below it, camera looking horizontally.
+
+    Rays through the upper half of the image rise and enter the box; rays through
+    the lower half descend, never enter it (so L = 0 and T = 1 exactly) and hit the
+    ground. Row 0 must be the top of the image. (The horizon itself is a sharp edge
+    in L, T and the surface seen: the rows next to it depend on the pixel filter.)
+    """
+    width, height = 40, 30  # even height: no row looks exactly horizontally
+    scene = small_scene(
+        camera={
+            "type": "perspective",
+            "position": [0.0, 0.0, 0.0],
+            "orientation": {"look_at": {"target": [0.0, 10.0, 0.0]}},
+            "resolution": [width, height],
+        },
+        meshes=[
+            {
+                "name": "ground",
+                "positions": [[-1e4, -1e4, -1.0], [1e4, -1e4, -1.0], [1e4, 1e4, -1.0], [-1e4, 1e4, -1.0]],
+                "triangles": [[0, 1, 2], [0, 2, 3]],
+            }
+        ],
+        media=[
+            {
+                "type": "homogeneous",
+                "scattering": 0.02,
+                "bounds": {"box": {"min": [-1e5, -1e5, 1.0], "max": [1e5, 1e5, 1e5]}},
+            }
+        ],
+    )
+    layers, _ = tyndall.render(scene, layers=["inscatter", "transmittance", "depth"])
+    # Leave out the rows whose pixel filter (Cycles' Blackman–Harris reaches ±1.5 px) crosses the horizon.
+    top, bottom = slice(0, height // 2 - 2), slice(height // 2 + 2, height)
+    inscatter, transmittance, depth = layers["inscatter"], layers["transmittance"], layers["depth"]
+    assert np.all(inscatter[top] > 0.0)
+    assert np.all(transmittance[top] < 1.0)
+    assert np.all(inscatter[bottom] == 0.0)
+    assert np.all(transmittance[bottom] == 1.0)
+    # The ground is below the eye: only the lower half hits it.
+    assert np.all(depth[top] == DEPTH_NO_HIT)
+    assert np.all(depth[bottom] < DEPTH_NO_HIT)
+    # The row just below the horizon sees the ground farthest away; depth falls towards the bottom.
+    centre = depth[bottom, width // 2].astype(np.float64)
+    assert np.all(np.diff(centre) < 0.0)
+
+
+def _blackman_harris_cdf(offset_px: float, filter_width_px: float = 1.5) -> float:
+    """Fraction of Cycles' Blackman–Harris pixel filter below ``offset_px`` from the pixel centre.
+
+    Cycles (``scene/film.cpp``, ``filter_table``) doubles the width for this filter and
+    tabulates ``filter_func_blackman_harris(x, 2·filter_width)`` on x in [0, filter_width],
+    mirrored (``util_cdf_inverted(..., make_symmetric=true)``); the kernel adds the table
+    value to the raster position (``camera_sample``): the window covers ±filter_width px,
+    w(v) = a0 − a1 cos v + a2 cos 2v − a3 cos 3v, v = π(x/filter_width + 1). Integrated in
+    closed form: ∫ w dx = (filter_width/π)(a0 v − a1 sin v + a2 sin 2v/2 − a3 sin 3v/3).
+    """
+    a0, a1, a2, a3 = 0.35875, 0.48829, 0.14128, 0.01168
+    x = min(max(offset_px, -filter_width_px), filter_width_px)
+    v = math.pi * (x / filter_width_px + 1.0)
+    return (a0 * v - a1 * math.sin(v) + a2 * math.sin(2 * v) / 2 - a3 * math.sin(3 * v) / 3) / (2 * math.pi * a0)
+
+
+def test_pixel_filter_across_a_horizontal_edge_is_cycles_blackman_harris(small_scene: MakeScene) -> None:
+    """The scene of the row test: above the horizon L = 0.1 (ambient only, T = 0), below it L = 0, T = 1.
+
+    Blender's pixel value is the window-weighted mean, a step filtered by the
+    separable window: L = 0.1·F, T = 1 − F with F the window's fraction above the
+    edge. The edge is the image line where the view ray rises by 1e-5 (the box's
+    floor z = 1 m reached at 1e5 m, its far side), 1e-5/(0.54/30) px above the row
+    boundary y = 15 px.
+    """
+    width, height = 40, 30
+    scene = small_scene(
+        camera={
+            "type": "perspective",
+            "position": [0.0, 0.0, 0.0],
+            "orientation": {"look_at": {"target": [0.0, 10.0, 0.0]}},
+            "resolution": [width, height],
+        },
+        meshes=[
+            {
+                "name": "ground",
+                "positions": [[-1e4, -1e4, -1.0], [1e4, -1e4, -1.0], [1e4, 1e4, -1.0], [-1e4, 1e4, -1.0]],
+                "triangles": [[0, 1, 2], [0, 2, 3]],
+            }
+        ],
+        media=[
+            {
+                "type": "homogeneous",
+                "scattering": 0.02,
+                "bounds": {"box": {"min": [-1e5, -1e5, 1.0], "max": [1e5, 1e5, 1e5]}},
+            }
+        ],
+        output={"tolerance": 1e-6, "layers": ["inscatter", "transmittance", "error"]},
+    )
+    layers, _ = tyndall.render(scene)
+    tan_per_px = (36.0 / 50.0) * (height / width) / height
+    edge_y = height / 2 - 1e-5 / tan_per_px
+    col = width // 2
+    rows = []
+    for row in range(height // 2 - 3, height // 2 + 3):
+        above = _blackman_harris_cdf(edge_y - (row + 0.5))
+        got_l = float(layers["inscatter"][row, col, 0])
+        got_t = float(layers["transmittance"][row, col, 0])
+        err = float(layers["error"][row, col, 0])
+        rows.append(f"row {row}: F {above:.5f}, L/0.1 {got_l / 0.1:.5f}, T {got_t:.5f}, error {err:.2e}")
+        ok = abs(got_l - 0.1 * above) <= err + 1e-6 and abs(got_t - (1.0 - above)) <= 1e-5 + err / 0.1
+        assert ok, "\n".join(rows)
+
+
+# ---------------------------------------------------------------- render: report
+
+
+def test_report_has_timings_error_and_plan(small_scene: MakeScene) -> None:
+    # Point samples: with one closed-form medium per ray, the estimate is rounding only.
+    scene = small_scene(output={"pixel_filter": {"type": "none"}})
+    width, height = scene["camera"]["resolution"]
+    _, report = tyndall.render(scene)
+    stages = {t["stage"]: t["seconds"] for t in report["timings"]}
+    assert {"plan", "bvh", "render"} <= set(stages)
+    assert all(math.isfinite(s) and s >= 0.0 for s in stages.values())
+    err = report["error"]
+    for key in ("max_abs", "max_rel", "tolerance"):
+        assert isinstance(err[key], float) and math.isfinite(err[key]) and err[key] >= 0.0, key
+    assert err["tolerance"] == 1e-4  # the format's default
+    # One closed-form medium per ray: the estimate bounds rounding only.
+    assert err["max_rel"] < 1e-12
+    assert err["pixels_closed_form"] == width * height
+    assert err["pixels_numeric"] == 0
+    assert report["tyndall_version"] == tyndall.__version__
+    # Every ray ends on the wall.
+    assert report["stats"]["rays_hit_surface"] == width * height
+    plan = report["plan"]
+    assert all(isinstance(i["what"], str) and i["why"] for i in plan["left_out"])
+    assert all(isinstance(i["what"], str) and i["how"] for i in plan["computed"])
+
+
+def test_plan_grey_scene_leaves_out_spectral_sampling(small_scene: MakeScene) -> None:
+    _, report = tyndall.render(small_scene())
+    plan = report["plan"]
+    assert plan["colour_path"] == "rgb"
+    spectral = [i for i in plan["left_out"] if "spectral sampling" in i["what"]]
+    assert len(spectral) == 1
+    assert "RGB" in spectral[0]["why"]
+
+
+def test_plan_grey_spectrum_does_not_need_the_spectral_path(small_scene: MakeScene) -> None:
+    flat = {"spectrum_nm": [[400.0, 0.02], [700.0, 0.02]]}
+    _, report = tyndall.render(small_scene(media=[{"type": "homogeneous", "scattering": flat}]))
+    assert report["plan"]["colour_path"] == "rgb"
+    assert any("spectral sampling" in i["what"] for i in report["plan"]["left_out"])
+
+
+def test_plan_power_law_scene_is_spectral_and_exact_for_white_light(small_scene: MakeScene) -> None:
+    """A pure scatterer with σ_s ∝ λ⁻⁴ filling the world, no surfaces, a white sun.
+
+    With σ_a = 0 the infinite ray gives L(λ) = σ_s/σ_t · p · E(λ) = E(λ)/(4π) at every
+    wavelength whatever σ_s(λ) is, so the RGB result is the sun's colour / (4π) and
+    T = 0.
+    """
+    scene = small_scene(
+        meshes=[],
+        lights=[{"type": "sun", "direction_to_sun": [0.0, 1.0, 0.3], "color": [1.0, 1.0, 1.0], "strength_w_m2": 2.0}],
+        media=[{"type": "homogeneous", "scattering": {"power_law": {"at_550nm": 0.01, "exponent": 4.0}}}],
+    )
+    layers, report = tyndall.render(scene)
+    plan = report["plan"]
+    assert plan["colour_path"].startswith("spectral")
+    assert not any("spectral sampling" in i["what"] for i in plan["left_out"])
+    assert any(i["what"] == "colour" and "media[0]" in i["how"] for i in plan["computed"])
+    expected = 2.0 / (4.0 * math.pi)
+    np.testing.assert_allclose(layers["inscatter"], expected, rtol=1e-6, atol=0.0)
+    assert np.all(layers["transmittance"] == 0.0)
+    assert np.all(layers["depth"] == DEPTH_NO_HIT)
+
+
+# ---------------------------------------------------------------- render: inputs and overrides
+
+
+def test_render_accepts_scene_dict_str_and_path(small_scene: MakeScene, tmp_path: Path) -> None:
+    scene = small_scene()
+    file = tmp_path / "scene.json"
+    file.write_text(json.dumps(scene))
+    results = [
+        tyndall.render(scene)[0],
+        tyndall.render(str(file))[0],
+        tyndall.render(file)[0],
+        tyndall.render(tyndall.load_scene(file))[0],
+    ]
+    for other in results[1:]:
+        assert set(other) == set(results[0])
+        for name in results[0]:
+            np.testing.assert_array_equal(other[name], results[0][name])
+
+
+def test_render_overrides_tolerance_threads_layers(small_scene: MakeScene) -> None:
+    scene = tyndall.as_scene(small_scene())
+    layers, report = tyndall.render(scene, tolerance=1e-6, threads=1, layers=["depth", "error"])
+    assert report["error"]["tolerance"] == 1e-6
+    assert report["stats"]["threads"] == 1
+    assert list(layers) == ["depth", "error"]
+    assert layers["error"].shape == (30, 40, 3)
+    left_out = {i["what"] for i in report["plan"]["left_out"]}
+    assert {"layer inscatter", "layer transmittance", "layer sun_transmittance"} <= left_out
+    # Overrides do not change the Scene object.
+    layers, report = tyndall.render(scene)
+    assert report["error"]["tolerance"] == 1e-4
+    assert set(layers) == DEFAULT_LAYERS
+    # Overrides are validated like the scene itself.
+    with pytest.raises(tyndall.SceneFormatError) as info:
+        tyndall.render(scene, tolerance=2.0)
+    assert info.value.path == "output.tolerance"
+    with pytest.raises(ValueError, match="bogus"):
+        tyndall.render(scene, layers=["inscatter", "bogus"])
+
+
+# ---------------------------------------------------------------- scene errors
+
+
+def _set(path: str, value: Any) -> Callable[[SceneDict], None]:
+    """A modifier that sets ``scene[...]`` at a dotted path with [i] indices."""
+
+    def apply(scene: SceneDict) -> None:
+        keys: list[str | int] = []
+        for part in path.replace("]", "").split("."):
+            name, *idx = part.split("[")
+            keys.append(name)
+            keys.extend(int(i) for i in idx)
+        target: Any = scene
+        for k in keys[:-1]:
+            target = target[k]
+        target[keys[-1]] = value
+
+    return apply
+
+
+def _neg_scattering(scene: SceneDict) -> None:
+    scene["media"] = [{"type": "homogeneous", "scattering": [0.01, -0.02, 0.03]}]
+
+
+def _bad_resolution_type(scene: SceneDict) -> None:
+    scene["camera"]["resolution"] = [40, "thirty"]
+
+
+ERROR_CASES: list[tuple[str, Callable[[SceneDict], None], str, str]] = [
+    # (id, modifier, expected .path, a word the message must contain)
+    ("unknown root field", _set("colour", 1), "colour", "unknown field"),
+    ("unknown output field", _set("output", {"colour": 1}), "output.colour", "unknown field"),
+    ("unknown camera field", _set("camera.focal_lenght_mm", 35), "camera.focal_lenght_mm", "unknown field"),
+    ("unknown light field", _set("lights[1].colour", [1, 1, 1]), "lights[1].colour", "unknown field"),
+    ("negative scattering", _neg_scattering, "media[0].scattering[1]", "≥ 0"),
+    ("zero direction", _set("lights[0].direction_to_sun", [0.0, 0.0, 0.0]), "lights[0].direction_to_sun", "zero"),
+    ("nan strength", _set("lights[0].strength_w_m2", float("nan")), "lights[0].strength_w_m2", ""),
+    (
+        "nan in a vector",
+        _set("lights[0].direction_to_sun", [0.3, float("nan"), 0.5]),
+        "lights[0].direction_to_sun[1]",
+        "",
+    ),
+    ("infinite position", _set("camera.position", [0.0, float("inf"), 1.5]), "camera.position[1]", ""),
+    ("g out of range", _set("media[0].phase", {"type": "henyey_greenstein", "g": 1.5}), "media[0].phase.g", "g"),
+    ("wrong type in camera", _bad_resolution_type, "camera.resolution[1]", "invalid type"),
+]
+
+
+@pytest.mark.parametrize(("modify", "path", "word"), [c[1:] for c in ERROR_CASES], ids=[c[0] for c in ERROR_CASES])
+def test_scene_format_error_names_the_field(
+    small_scene: MakeScene, modify: Callable[[SceneDict], None], path: str, word: str
+) -> None:
+    scene = small_scene()
+    modify(scene)
+    with pytest.raises(tyndall.SceneFormatError) as info:
+        tyndall.render(scene)
+    err = info.value
+    assert isinstance(err, ValueError)
+    assert err.path == path
+    assert err.source_name == "<dict>"
+    assert f"<dict>: {path}: " in str(err)
+    assert word in err.detail
+
+
+def test_scene_format_error_from_a_file_with_a_nan_literal(small_scene: MakeScene, tmp_path: Path) -> None:
+    scene = small_scene()
+    scene["media"][0]["absorption"] = float("nan")
+    file = tmp_path / "nan_scene.json"
+    file.write_text(json.dumps(scene, allow_nan=True))
+    assert "NaN" in file.read_text()
+    with pytest.raises(tyndall.SceneFormatError) as info:
+        tyndall.load_scene(file)
+    err = info.value
+    assert err.path == "media[0].absorption"
+    assert err.source_name == str(file)
+    assert str(file) in str(err) and "media[0].absorption" in str(err)
+
+
+def test_missing_file_raises_scene_format_error(tmp_path: Path) -> None:
+    missing = tmp_path / "nope.json"
+    with pytest.raises(tyndall.SceneFormatError) as info:
+        tyndall.load_scene(missing)
+    assert info.value.source_name == str(missing)
+    assert str(missing) in str(info.value)
+
+
+# ---------------------------------------------------------------- the GIL
+
+
+@pytest.fixture(scope="module")
+def gil_scene() -> tyndall.Scene:
+    """The valley example at 1280×720, point-sampled: about 0.2 s single-threaded on an idle core."""
+    raw = json.loads((EXAMPLES_DIR / "valley_height_fog.json").read_text())
+    raw["camera"]["resolution"] = [1280, 720]
+    raw["output"]["pixel_filter"] = {"type": "none"}
+    return tyndall.as_scene(raw)
+
+
+def _render_one(scene: tyndall.Scene) -> None:
+    tyndall.render(scene, threads=1, layers=["inscatter"])
+
+
+def test_render_lets_other_python_threads_run(gil_scene: tyndall.Scene) -> None:
+    """While a render runs in one thread, the main thread keeps running Python code.
+
+    If the render held the GIL, the main thread would stall for the whole render;
+    this holds on any number of cores and under load.
+    """
+    _render_one(gil_scene)  # warm up
+    finished = threading.Event()
+    duration = [0.0]
+
+    def work() -> None:
+        start = time.perf_counter()
+        _render_one(gil_scene)
+        duration[0] = time.perf_counter() - start
+        finished.set()
+
+    worker = threading.Thread(target=work)
+    ticks = [time.perf_counter()]
+    worker.start()
+    while not finished.is_set():
+        ticks.append(time.perf_counter())
+        time.sleep(0.0005)
+    worker.join()
+    ticks.append(time.perf_counter())
+    longest_stall = float(np.max(np.diff(ticks)))
+    assert duration[0] > 0.05, "the render is too short to tell"
+    assert longest_stall < 0.25 * duration[0], (
+        f"main thread stalled {longest_stall * 1e3:.1f} ms during a {duration[0] * 1e3:.1f} ms render"
+    )
+
+
+def test_two_renders_in_two_threads_run_in_parallel(gil_scene: tyndall.Scene) -> None:
+    """Two single-threaded renders in two Python threads take less than 1.6× one render."""
+    cores = _available_cores()
+    if cores < 2:
+        pytest.skip("needs at least 2 cores")
+    _render_one(gil_scene)  # warm up
+
+    def timed(n_threads: int) -> float:
+        workers = [threading.Thread(target=_render_one, args=(gil_scene,)) for _ in range(n_threads)]
+        start = time.perf_counter()
+        for w in workers:
+            w.start()
+        for w in workers:
+            w.join()
+        return time.perf_counter() - start
+
+    # Interleaved pairs, so that a change of machine load affects both alike.
+    pairs = [(timed(1), timed(2)) for _ in range(4)]
+    single, double = min(pairs, key=lambda p: p[1] / p[0])
+    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else 0.0
+    if double >= 1.6 * single and load > cores - 1.0:
+        pytest.skip(f"inconclusive on a busy machine (load {load:.1f} on {cores} cores): {double / single:.2f}x")
+    assert double < 1.6 * single, f"two renders took {double:.3f} s, one took {single:.3f} s"
