@@ -22,6 +22,52 @@ use serde::{Deserialize, Serialize};
 use std::fmt;
 use std::path::Path;
 
+/// Marks a field path carried inside an error message from a tagged object
+/// (see [`tagged_inner`]); `Scene::from_json_str` splices it into the path.
+const PATH_MARK: char = '\u{1}';
+
+/// Deserialises the payload of a `{"type": ...}`-tagged object as `T`,
+/// keeping the path of a failing field (serde's own internally tagged enums
+/// lose it: the error would point at the object, not at the field).
+fn tagged_inner<T: serde::de::DeserializeOwned, E: serde::de::Error>(v: serde_json::Value) -> Result<T, E> {
+    serde_path_to_error::deserialize(v).map_err(|e| {
+        let path = e.path().to_string();
+        let inner = e.into_inner().to_string();
+        E::custom(format!("{PATH_MARK}{path}{PATH_MARK}{inner}"))
+    })
+}
+
+/// `Deserialize` for an enum tagged by `"type"` whose variants wrap structs.
+macro_rules! tagged_enum_deserialize {
+    ($enum:ident, $what:literal, { $($tag:literal => $variant:ident($ty:ty)),+ $(,)? }) => {
+        impl<'de> Deserialize<'de> for $enum {
+            fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+                use serde::de::Error;
+                const TAGS: &[&str] = &[$($tag),+];
+                let mut map = serde_json::Map::<String, serde_json::Value>::deserialize(d)?;
+                let tag = match map.remove("type") {
+                    Some(serde_json::Value::String(t)) => t,
+                    Some(other) => return Err(D::Error::custom(format!("`type` must be a string naming the {}, one of {}; got {other}", $what, TAGS.join(", ")))),
+                    None => return Err(D::Error::custom(format!("missing field `type`: the {} type, one of {}", $what, TAGS.join(", ")))),
+                };
+                let payload = serde_json::Value::Object(map);
+                match tag.as_str() {
+                    $($tag => tagged_inner::<$ty, D::Error>(payload).map($enum::$variant),)+
+                    other => Err(D::Error::custom(format!("unknown {} type `{other}`, expected one of {}", $what, TAGS.join(", ")))),
+                }
+            }
+        }
+    };
+}
+
+tagged_enum_deserialize!(Camera, "camera", { "perspective" => Perspective(PerspectiveCamera), "equirectangular" => Equirectangular(EquirectangularCamera) });
+tagged_enum_deserialize!(Light, "light", { "sun" => Sun(SunLight), "ambient" => Ambient(AmbientLight) });
+tagged_enum_deserialize!(Medium, "medium", {
+    "homogeneous" => Homogeneous(HomogeneousMedium),
+    "height_fog" => HeightFog(HeightFogMedium),
+    "fog_layer" => FogLayer(FogLayerMedium),
+});
+
 /// The scene format version this build reads and writes.
 pub const SCENE_VERSION: u32 = 1;
 
@@ -60,8 +106,8 @@ pub struct Scene {
 }
 
 /// Camera. JSON: `{"type": "perspective", ...}` or `{"type": "equirectangular", ...}`.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
-#[serde(tag = "type", rename_all = "snake_case", deny_unknown_fields)]
+#[derive(Debug, Clone, PartialEq, Serialize, JsonSchema)]
+#[serde(tag = "type", rename_all = "snake_case")]
 pub enum Camera {
     /// Blender's perspective camera.
     Perspective(PerspectiveCamera),
@@ -218,42 +264,54 @@ pub enum LightSpectrum {
 /// A light. JSON: `{"type": "sun", ...}` or `{"type": "ambient", ...}`.
 /// Point and spot lights with intensity distributions are reserved for a later
 /// format revision (the `type` tag leaves room for them).
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
-#[serde(tag = "type", rename_all = "snake_case", deny_unknown_fields)]
+#[derive(Debug, Clone, PartialEq, Serialize, JsonSchema)]
+#[serde(tag = "type", rename_all = "snake_case")]
 pub enum Light {
     /// A directional light (Blender's Sun lamp): parallel rays from `direction_to_sun`.
-    Sun {
-        /// Name for reports and per-light layers. Default "sun".
-        #[serde(default = "default_sun_name")]
-        name: String,
-        /// Unit-less vector pointing from the scene towards the sun, non-zero.
-        direction_to_sun: [f64; 3],
-        /// Linear Rec.709 colour, each ≥ 0. Default [1,1,1].
-        #[serde(default = "default_white")]
-        color: [f64; 3],
-        /// Irradiance on a surface facing the sun, W·m⁻², ≥ 0 (Blender's Strength). Default 1.
-        #[serde(default = "default_one")]
-        strength_w_m2: f64,
-        /// Angular diameter of the disc, degrees, 0..=180. Default 0.526 (Blender).
-        #[serde(default = "default_sun_angle")]
-        angular_diameter_deg: f64,
-        /// Spectral shape. Default `rgb`.
-        #[serde(default)]
-        spectrum: LightSpectrum,
-    },
+    Sun(SunLight),
+
     /// Uniform incident radiance from every direction (sky/fill), scattered
     /// isotropically (Ishiyama eq 11).
-    Ambient {
-        /// Name. Default "ambient".
-        #[serde(default = "default_ambient_name")]
-        name: String,
-        /// Linear Rec.709 colour, each ≥ 0. Default [1,1,1].
-        #[serde(default = "default_white")]
-        color: [f64; 3],
-        /// Radiance, W·m⁻²·sr⁻¹, ≥ 0. Default 1.
-        #[serde(default = "default_one")]
-        radiance: f64,
-    },
+    Ambient(AmbientLight),
+}
+
+/// A directional light (Blender's Sun lamp): parallel rays from `direction_to_sun`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields)]
+pub struct SunLight {
+    /// Name for reports and per-light layers. Default "sun".
+    #[serde(default = "default_sun_name")]
+    pub name: String,
+    /// Unit-less vector pointing from the scene towards the sun, non-zero.
+    pub direction_to_sun: [f64; 3],
+    /// Linear Rec.709 colour, each ≥ 0. Default [1,1,1].
+    #[serde(default = "default_white")]
+    pub color: [f64; 3],
+    /// Irradiance on a surface facing the sun, W·m⁻², ≥ 0 (Blender's Strength). Default 1.
+    #[serde(default = "default_one")]
+    pub strength_w_m2: f64,
+    /// Angular diameter of the disc, degrees, 0..=180. Default 0.526 (Blender).
+    #[serde(default = "default_sun_angle")]
+    pub angular_diameter_deg: f64,
+    /// Spectral shape. Default `rgb`.
+    #[serde(default)]
+    pub spectrum: LightSpectrum,
+}
+
+/// Uniform incident radiance from every direction (sky/fill), scattered
+/// isotropically (Ishiyama eq 11).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields)]
+pub struct AmbientLight {
+    /// Name. Default "ambient".
+    #[serde(default = "default_ambient_name")]
+    pub name: String,
+    /// Linear Rec.709 colour, each ≥ 0. Default [1,1,1].
+    #[serde(default = "default_white")]
+    pub color: [f64; 3],
+    /// Radiance, W·m⁻²·sr⁻¹, ≥ 0. Default 1.
+    #[serde(default = "default_one")]
+    pub radiance: f64,
 }
 
 fn default_sun_name() -> String {
@@ -371,75 +429,92 @@ pub enum SunPath {
 }
 
 /// A medium. JSON: `{"type": "homogeneous" | "height_fog" | "fog_layer", ...}`.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
-#[serde(tag = "type", rename_all = "snake_case", deny_unknown_fields)]
+#[derive(Debug, Clone, PartialEq, Serialize, JsonSchema)]
+#[serde(tag = "type", rename_all = "snake_case")]
 pub enum Medium {
     /// Constant coefficients, in the world or in a box.
-    Homogeneous {
-        /// Name for reports. Default "".
-        #[serde(default)]
-        name: String,
-        /// Scattering coefficient σ_s, m⁻¹, ≥ 0. Required.
-        scattering: Coefficient,
-        /// Absorption coefficient σ_a, m⁻¹, ≥ 0. Default 0.
-        #[serde(default)]
-        absorption: Coefficient,
-        /// Phase function. Default isotropic.
-        #[serde(default)]
-        phase: PhaseFunction,
-        /// Extent. Default `"world"`.
-        #[serde(default)]
-        bounds: Bounds,
-    },
+    Homogeneous(HomogeneousMedium),
+
     /// Ishiyama's exponential height fog: Rayleigh + Mie sharing one scale height.
-    HeightFog {
-        /// Name for reports. Default "".
-        #[serde(default)]
-        name: String,
-        /// Scale height H, m, 1e-3..=1e7. Required.
-        scale_height_m: f64,
-        /// Height where the coefficients apply, m. Default 0.
-        #[serde(default)]
-        reference_height_m: f64,
-        /// Rayleigh component (phase 3/(16π)(1+μ²)). Default none.
-        #[serde(default)]
-        rayleigh: Option<FogComponent>,
-        /// Mie component. Default none.
-        #[serde(default)]
-        mie: Option<MieComponent>,
-    },
+    HeightFog(HeightFogMedium),
+
     /// Klassen's sunlit fog layer (flat earth): uniform fog between two heights.
-    FogLayer {
-        /// Name for reports. Default "".
-        #[serde(default)]
-        name: String,
-        /// Ground (bottom of the fog), m. Default 0.
-        #[serde(default)]
-        ground_height_m: f64,
-        /// Top of the fog, m, > ground. Required.
-        top_height_m: f64,
-        /// Fog extinction β_ex,p, m⁻¹, ≥ 0 (15e-3..40e-3 for fog per Klassen). Required.
-        extinction: Coefficient,
-        /// Fraction of extinction that is scattering, 0..=1. Default 1 (Klassen:
-        /// fog in a steady state only scatters).
-        #[serde(default = "default_one")]
-        single_scattering_albedo: f64,
-        /// Molecular extinction inside the layer β_ex,m, m⁻¹, ≥ 0. Default 0.
-        #[serde(default)]
-        air_extinction: Coefficient,
-        /// Phase function of the droplets. Default Nishita hazy.
-        #[serde(default = "default_fog_phase")]
-        phase: PhaseFunction,
-        /// Sun path through the layer. Default `per_point`.
-        #[serde(default)]
-        sun_path: SunPath,
-        /// Below this sun elevation, degrees 0..=90, the direct sun term is replaced
-        /// by the constant fog colour of the ambient light (Klassen §3: at low sun
-        /// no direct light gets through; the flat earth holds to 1 % for fog above
-        /// ≈15°). Default 15.
-        #[serde(default = "default_min_sun")]
-        min_sun_elevation_deg: f64,
-    },
+    FogLayer(FogLayerMedium),
+}
+
+/// Constant coefficients, in the world or in a box.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields)]
+pub struct HomogeneousMedium {
+    /// Name for reports. Default "".
+    #[serde(default)]
+    pub name: String,
+    /// Scattering coefficient σ_s, m⁻¹, ≥ 0. Required.
+    pub scattering: Coefficient,
+    /// Absorption coefficient σ_a, m⁻¹, ≥ 0. Default 0.
+    #[serde(default)]
+    pub absorption: Coefficient,
+    /// Phase function. Default isotropic.
+    #[serde(default)]
+    pub phase: PhaseFunction,
+    /// Extent. Default `"world"`.
+    #[serde(default)]
+    pub bounds: Bounds,
+}
+
+/// Ishiyama's exponential height fog: Rayleigh + Mie sharing one scale height.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields)]
+pub struct HeightFogMedium {
+    /// Name for reports. Default "".
+    #[serde(default)]
+    pub name: String,
+    /// Scale height H, m, 1e-3..=1e7. Required.
+    pub scale_height_m: f64,
+    /// Height where the coefficients apply, m. Default 0.
+    #[serde(default)]
+    pub reference_height_m: f64,
+    /// Rayleigh component (phase 3/(16π)(1+μ²)). Default none.
+    #[serde(default)]
+    pub rayleigh: Option<FogComponent>,
+    /// Mie component. Default none.
+    #[serde(default)]
+    pub mie: Option<MieComponent>,
+}
+
+/// Klassen's sunlit fog layer (flat earth): uniform fog between two heights.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields)]
+pub struct FogLayerMedium {
+    /// Name for reports. Default "".
+    #[serde(default)]
+    pub name: String,
+    /// Ground (bottom of the fog), m. Default 0.
+    #[serde(default)]
+    pub ground_height_m: f64,
+    /// Top of the fog, m, > ground. Required.
+    pub top_height_m: f64,
+    /// Fog extinction β_ex,p, m⁻¹, ≥ 0 (15e-3..40e-3 for fog per Klassen). Required.
+    pub extinction: Coefficient,
+    /// Fraction of extinction that is scattering, 0..=1. Default 1 (Klassen:
+    /// fog in a steady state only scatters).
+    #[serde(default = "default_one")]
+    pub single_scattering_albedo: f64,
+    /// Molecular extinction inside the layer β_ex,m, m⁻¹, ≥ 0. Default 0.
+    #[serde(default)]
+    pub air_extinction: Coefficient,
+    /// Phase function of the droplets. Default Nishita hazy.
+    #[serde(default = "default_fog_phase")]
+    pub phase: PhaseFunction,
+    /// Sun path through the layer. Default `per_point`.
+    #[serde(default)]
+    pub sun_path: SunPath,
+    /// Below this sun elevation, degrees 0..=90, the direct sun term is replaced
+    /// by the constant fog colour of the ambient light (Klassen §3: at low sun
+    /// no direct light gets through; the flat earth holds to 1 % for fog above
+    /// ≈15°). Default 15.
+    #[serde(default = "default_min_sun")]
+    pub min_sun_elevation_deg: f64,
 }
 
 fn default_fog_phase() -> PhaseFunction {
@@ -527,12 +602,27 @@ impl Scene {
     pub fn from_json_str(text: &str, source_name: &str) -> Result<Scene, SceneError> {
         let de = &mut serde_json::Deserializer::from_str(text);
         let scene: Scene = serde_path_to_error::deserialize(de).map_err(|e| {
-            let path = e.path().to_string();
-            let inner = e.into_inner();
+            let mut path = e.path().to_string();
+            let mut message = e.into_inner().to_string();
+            // Paths from inside tagged objects arrive as MARK path MARK message.
+            while let Some(rest) = message.strip_prefix(PATH_MARK) {
+                let Some((inner, tail)) = rest.split_once(PATH_MARK) else { break };
+                if !inner.is_empty() && inner != "." {
+                    if path.is_empty() || path == "." {
+                        path = inner.to_string();
+                    } else if inner.starts_with('[') {
+                        path = format!("{path}{inner}");
+                    } else {
+                        path = format!("{path}.{inner}");
+                    }
+                }
+                message = tail.to_string();
+            }
+            let message = describe_json_error(&message);
             SceneError {
                 source_name: source_name.to_string(),
                 path: if path.is_empty() { ".".into() } else { path },
-                message: describe_json_error(&inner),
+                message,
             }
         })?;
         scene.validate().map_err(|(path, message)| SceneError {
@@ -569,8 +659,8 @@ impl Scene {
     }
 }
 
-fn describe_json_error(e: &serde_json::Error) -> String {
-    let msg = e.to_string();
+fn describe_json_error(msg: &str) -> String {
+    let msg = msg.to_string();
     // serde_json writes "... at line L column C"; keep it, and explain the
     // untagged-coefficient message, which says nothing useful on its own.
     if msg.contains("untagged enum Coefficient") {
@@ -805,19 +895,19 @@ impl Validator {
         for (i, l) in s.lights.iter().enumerate() {
             self.push(format!("lights[{i}]"));
             match l {
-                Light::Sun {
+                Light::Sun(SunLight {
                     direction_to_sun,
                     color,
                     strength_w_m2,
                     angular_diameter_deg,
                     ..
-                } => {
+                }) => {
                     self.direction("direction_to_sun", *direction_to_sun);
                     self.color("color", *color);
                     self.non_negative("strength_w_m2", *strength_w_m2, "W·m⁻²");
                     self.range("angular_diameter_deg", *angular_diameter_deg, 0.0, 180.0, "degrees");
                 }
-                Light::Ambient { color, radiance, .. } => {
+                Light::Ambient(AmbientLight { color, radiance, .. }) => {
                     self.color("color", *color);
                     self.non_negative("radiance", *radiance, "W·m⁻²·sr⁻¹");
                 }
@@ -827,13 +917,13 @@ impl Validator {
         for (i, m) in s.media.iter().enumerate() {
             self.push(format!("media[{i}]"));
             match m {
-                Medium::Homogeneous {
+                Medium::Homogeneous(HomogeneousMedium {
                     scattering,
                     absorption,
                     phase,
                     bounds,
                     ..
-                } => {
+                }) => {
                     self.coefficient("scattering", scattering);
                     self.coefficient("absorption", absorption);
                     self.phase("phase", phase);
@@ -851,13 +941,13 @@ impl Validator {
                         }
                     }
                 }
-                Medium::HeightFog {
+                Medium::HeightFog(HeightFogMedium {
                     scale_height_m,
                     reference_height_m,
                     rayleigh,
                     mie,
                     ..
-                } => {
+                }) => {
                     self.range("scale_height_m", *scale_height_m, 1e-3, 1e7, "m");
                     self.range("reference_height_m", *reference_height_m, -1e7, 1e7, "m");
                     if let Some(r) = rayleigh {
@@ -870,7 +960,7 @@ impl Validator {
                         self.phase("mie.phase", &m.phase);
                     }
                 }
-                Medium::FogLayer {
+                Medium::FogLayer(FogLayerMedium {
                     ground_height_m,
                     top_height_m,
                     extinction,
@@ -879,7 +969,7 @@ impl Validator {
                     phase,
                     min_sun_elevation_deg,
                     ..
-                } => {
+                }) => {
                     self.range("ground_height_m", *ground_height_m, -1e7, 1e7, "m");
                     if self.finite("top_height_m", *top_height_m) && top_height_m <= ground_height_m {
                         self.fail(

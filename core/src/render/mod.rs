@@ -33,7 +33,10 @@ use crate::medium::phase::PhaseFunction;
 use crate::medium::{LightSet, PreparedMedium, RayResult, SunSource, ViewRay};
 use crate::numeric::integrate_adaptive;
 use crate::report::Report;
-use crate::scene::{Bounds, Coefficient, LayerKind, Light, LightSpectrum, Medium, Scene, SpectralMode};
+use crate::scene::{
+    AmbientLight, Bounds, Coefficient, FogLayerMedium, HeightFogMedium, HomogeneousMedium, LayerKind, Light, LightSpectrum, Medium, Scene,
+    SpectralMode, SunLight,
+};
 use crate::spectrum::{self, SPECTRAL_SAMPLES};
 use glam::DVec3;
 use rayon::prelude::*;
@@ -155,10 +158,10 @@ pub fn render(scene: &Scene, progress: Option<Progress<'_>>) -> Result<(Images, 
 
 fn medium_coefficients(m: &Medium) -> Vec<&Coefficient> {
     match m {
-        Medium::Homogeneous {
+        Medium::Homogeneous(HomogeneousMedium {
             scattering, absorption, ..
-        } => vec![scattering, absorption],
-        Medium::HeightFog { rayleigh, mie, .. } => {
+        }) => vec![scattering, absorption],
+        Medium::HeightFog(HeightFogMedium { rayleigh, mie, .. }) => {
             let mut v = Vec::new();
             if let Some(r) = rayleigh {
                 v.push(&r.scattering);
@@ -170,11 +173,11 @@ fn medium_coefficients(m: &Medium) -> Vec<&Coefficient> {
             }
             v
         }
-        Medium::FogLayer {
+        Medium::FogLayer(FogLayerMedium {
             extinction,
             air_extinction,
             ..
-        } => vec![extinction, air_extinction],
+        }) => vec![extinction, air_extinction],
     }
 }
 
@@ -234,7 +237,9 @@ fn needs_spectral(scene: &Scene, report: &mut Report) -> bool {
 
 fn medium_label(i: usize, m: &Medium) -> String {
     let name = match m {
-        Medium::Homogeneous { name, .. } | Medium::HeightFog { name, .. } | Medium::FogLayer { name, .. } => name,
+        Medium::Homogeneous(HomogeneousMedium { name, .. })
+        | Medium::HeightFog(HeightFogMedium { name, .. })
+        | Medium::FogLayer(FogLayerMedium { name, .. }) => name,
     };
     if name.is_empty() {
         format!("media[{i}]")
@@ -245,7 +250,7 @@ fn medium_label(i: usize, m: &Medium) -> String {
 
 fn light_label(i: usize, l: &Light) -> String {
     let name = match l {
-        Light::Sun { name, .. } | Light::Ambient { name, .. } => name,
+        Light::Sun(SunLight { name, .. }) | Light::Ambient(AmbientLight { name, .. }) => name,
     };
     format!("lights[{i}] \"{name}\"")
 }
@@ -297,13 +302,13 @@ fn prepare_lights<const C: usize>(scene: &Scene, report: &mut Report) -> LightSe
     for (i, l) in scene.lights.iter().enumerate() {
         let label = light_label(i, l);
         match l {
-            Light::Sun {
+            Light::Sun(SunLight {
                 direction_to_sun,
                 color,
                 strength_w_m2,
                 spectrum: shape,
                 ..
-            } => {
+            }) => {
                 if *strength_w_m2 == 0.0 || color.iter().all(|c| *c == 0.0) {
                     report.plan.left_out(label, "no contribution: zero strength or black colour");
                     continue;
@@ -332,7 +337,7 @@ fn prepare_lights<const C: usize>(scene: &Scene, report: &mut Report) -> LightSe
                 );
                 set.suns.push(SunSource::point(to_sun, irradiance));
             }
-            Light::Ambient { color, radiance, .. } => {
+            Light::Ambient(AmbientLight { color, radiance, .. }) => {
                 if *radiance == 0.0 || color.iter().all(|c| *c == 0.0) {
                     report.plan.left_out(label, "no contribution: zero radiance or black colour");
                     continue;
@@ -367,13 +372,13 @@ fn prepare_media<const C: usize>(scene: &Scene, lights: &LightSet<C>, report: &m
             r
         };
         let prepared = match m {
-            Medium::Homogeneous {
+            Medium::Homogeneous(HomogeneousMedium {
                 name,
                 scattering,
                 absorption,
                 phase,
                 bounds,
-            } => {
+            }) => {
                 let s = resolve::<C>(scattering);
                 let ext = add(s, resolve::<C>(absorption));
                 let b = match bounds {
@@ -401,13 +406,13 @@ fn prepare_media<const C: usize>(scene: &Scene, lights: &LightSet<C>, report: &m
                     bounds: b,
                 })
             }
-            Medium::HeightFog {
+            Medium::HeightFog(HeightFogMedium {
                 name,
                 scale_height_m,
                 reference_height_m,
                 rayleigh,
                 mie,
-            } => {
+            }) => {
                 let zero = [0.0; C];
                 let (rs, ra) = rayleigh
                     .as_ref()
@@ -434,7 +439,7 @@ fn prepare_media<const C: usize>(scene: &Scene, lights: &LightSet<C>, report: &m
                     mie_phase: mp,
                 })
             }
-            Medium::FogLayer {
+            Medium::FogLayer(FogLayerMedium {
                 name,
                 ground_height_m,
                 top_height_m,
@@ -444,7 +449,7 @@ fn prepare_media<const C: usize>(scene: &Scene, lights: &LightSet<C>, report: &m
                 phase,
                 sun_path,
                 min_sun_elevation_deg,
-            } => {
+            }) => {
                 let fog = resolve::<C>(extinction);
                 let ext = add(fog, resolve::<C>(air_extinction));
                 let scat = fog.map(|v| v * single_scattering_albedo);
@@ -1205,12 +1210,12 @@ fn sun_disc_effect<const C: usize>(scene: &Scene, media: &[PreparedMedium<C>], l
     let mut worst = 0.0f64;
     let mut k = 0;
     for (i, l) in scene.lights.iter().enumerate() {
-        let Light::Sun {
+        let Light::Sun(SunLight {
             angular_diameter_deg,
             strength_w_m2,
             color,
             ..
-        } = l
+        }) = l
         else {
             continue;
         };
