@@ -1175,3 +1175,28 @@ pub fn json_schema() -> String {
     let schema = schemars::schema_for!(Scene);
     serde_json::to_string_pretty(&schema).unwrap_or_default()
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn committed_schema_matches_the_types() {
+        let committed = include_str!("../../docs/scene.schema.json");
+        assert_eq!(
+            committed.trim(),
+            json_schema().trim(),
+            "docs/scene.schema.json is stale: regenerate it with `tyndall schema > docs/scene.schema.json`"
+        );
+    }
+
+    #[test]
+    fn every_example_scene_loads() {
+        for (name, text) in [
+            ("valley_height_fog", include_str!("../../examples/valley_height_fog.json")),
+            ("fog_layer_sunrise", include_str!("../../examples/fog_layer_sunrise.json")),
+        ] {
+            Scene::from_json_str(text, name).unwrap_or_else(|e| panic!("{e}"));
+        }
+    }
+}
