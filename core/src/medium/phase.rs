@@ -163,51 +163,61 @@ impl PhaseFunction {
     }
 }
 
-/// A phase function averaged over a sun disc, tabulated against the angle θ
-/// between the view direction and the sun's centre: used instead of the point
-/// evaluation when treating the sun as a point would exceed the tolerance.
+/// A phase function averaged over a sun disc, tabulated against
+/// `u = √(1 − μ)` (μ = cos θ, θ the angle between the view direction and the
+/// sun's centre) on a uniform grid: `u ≈ θ/√2` near the sun, so the grid is
+/// uniform in angle where the disc matters, and a lookup costs one square
+/// root and one linear interpolation. Used instead of the point evaluation
+/// when treating the sun as a point would exceed the tolerance.
 ///
-/// Nodes are placed by recursive bisection of `[0, π]` until linear
-/// interpolation between two nodes matches [`PhaseFunction::disc_average`] at
-/// the midpoint to `rel_tol` (and `θ` steps are below a quarter of the disc
-/// radius near the disc), so the table's own error is bounded by `rel_tol`.
+/// The grid is doubled (from 256 nodes up to 2¹⁸) until linear interpolation
+/// matches [`PhaseFunction::disc_average`] at every cell midpoint to
+/// `rel_tol`, so the table's own error is bounded by `rel_tol`.
 #[derive(Debug, Clone, PartialEq)]
 pub struct DiscPhase {
     /// The phase function.
     pub phase: PhaseFunction,
     /// Angular radius of the disc, rad.
     pub radius: f64,
-    thetas: Vec<f64>,
     values: Vec<f64>,
+    scale: f64,
 }
+
+const U_MAX: f64 = std::f64::consts::SQRT_2;
 
 impl DiscPhase {
     /// Tabulates `phase` averaged over a disc of angular radius `radius` (rad).
     pub fn build(phase: PhaseFunction, radius: f64, rel_tol: f64) -> DiscPhase {
-        let f = |t: f64| phase.disc_average(t, radius);
-        let mut thetas = vec![0.0];
-        let mut values = vec![f(0.0)];
-        // Work stack of intervals (a, b, f(a), f(b)), left to right.
-        let mut stack = vec![(0.0, PI, values[0], f(PI))];
-        let min_step = (radius * 1e-3).max(1e-9);
-        while let Some((a, b, fa, fb)) = stack.pop() {
-            let m = 0.5 * (a + b);
-            let fm = f(m);
-            let lin = 0.5 * (fa + fb);
-            let coarse_near_disc = a < 4.0 * radius && b - a > 0.25 * radius;
-            if (b - a > min_step) && ((fm - lin).abs() > rel_tol * fm.abs() || coarse_near_disc || b - a > 0.1) {
-                // Right half first on the stack so the left half is finished first.
-                stack.push((m, b, fm, fb));
-                stack.push((a, m, fa, fm));
-            } else {
-                thetas.push(b);
-                values.push(fb);
+        let f = |u: f64| {
+            let mu = 1.0 - u * u;
+            phase.disc_average(mu.clamp(-1.0, 1.0).acos(), radius)
+        };
+        let mut n = 256usize;
+        let mut values: Vec<f64> = (0..=n).map(|i| f(U_MAX * i as f64 / n as f64)).collect();
+        loop {
+            let h = U_MAX / n as f64;
+            let mids: Vec<f64> = (0..n).map(|i| f((i as f64 + 0.5) * h)).collect();
+            let ok = mids
+                .iter()
+                .enumerate()
+                .all(|(i, m)| (0.5 * (values[i] + values[i + 1]) - m).abs() <= rel_tol * m.abs());
+            // Interleave: the midpoints are the new nodes of the doubled grid.
+            let mut finer = Vec::with_capacity(2 * n + 1);
+            for i in 0..n {
+                finer.push(values[i]);
+                finer.push(mids[i]);
+            }
+            finer.push(values[n]);
+            values = finer;
+            n *= 2;
+            if ok || n >= 1 << 18 {
+                break;
             }
         }
         DiscPhase {
             phase,
             radius,
-            thetas,
+            scale: n as f64 / U_MAX,
             values,
         }
     }
@@ -215,21 +225,20 @@ impl DiscPhase {
     /// Disc-averaged phase value, sr⁻¹, for `mu = cos θ` (view direction · direction to the sun's centre).
     #[inline]
     pub fn eval(&self, mu: f64) -> f64 {
-        let theta = mu.clamp(-1.0, 1.0).acos();
-        let i = self.thetas.partition_point(|t| *t <= theta).clamp(1, self.thetas.len() - 1);
-        let (a, b) = (self.thetas[i - 1], self.thetas[i]);
-        let u = if b > a { (theta - a) / (b - a) } else { 0.0 };
-        self.values[i - 1] + u * (self.values[i] - self.values[i - 1])
+        let x = (1.0 - mu.clamp(-1.0, 1.0)).sqrt() * self.scale;
+        let i = (x as usize).min(self.values.len() - 2);
+        let t = x - i as f64;
+        self.values[i] + t * (self.values[i + 1] - self.values[i])
     }
 
     /// Number of table nodes.
     pub fn len(&self) -> usize {
-        self.thetas.len()
+        self.values.len()
     }
 
     /// Whether the table is empty (never, after `build`).
     pub fn is_empty(&self) -> bool {
-        self.thetas.is_empty()
+        self.values.is_empty()
     }
 }
 
@@ -318,7 +327,7 @@ mod tests {
             let tab = t.eval(theta.cos());
             assert!((tab - direct).abs() <= 2.0 * tol * direct, "θ={theta}: {tab} vs {direct}");
         }
-        assert!(t.len() < 5000, "{} nodes", t.len());
+        assert!(t.len() <= (1 << 16) + 1, "{} nodes", t.len());
     }
 
     #[test]
