@@ -104,6 +104,8 @@ pub struct Stats {
     pub rays_hit_surface: u64,
     /// View rays that crossed no medium: no integral evaluated.
     pub rays_without_medium: u64,
+    /// Pixels with a NaN or infinite value in any layer (0 unless there is a bug).
+    pub non_finite_pixels: u64,
     /// Triangles in the BVH.
     pub triangles: u64,
     /// Threads used.

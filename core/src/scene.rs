@@ -744,8 +744,10 @@ impl Validator {
     }
     fn direction(&mut self, field: &str, v: [f64; 3]) {
         if self.vec3(field, v) {
-            let l = DVec3::from(v).length();
-            if l.is_nan() || l <= 1e-300 || !l.is_finite() {
+            // Scale first so that [1e200, 1e200, 0] does not overflow to ∞.
+            let m = v.iter().fold(0.0f64, |a, x| a.max(x.abs()));
+            let l = if m > 0.0 { m * (DVec3::from(v) / m).length() } else { 0.0 };
+            if m == 0.0 || l.is_nan() || l <= 1e-300 {
                 self.fail(field, "zero-length direction: give a non-zero vector");
             }
         }

@@ -156,6 +156,16 @@ impl<const C: usize> PreparedMedium<C> {
         }
     }
 
+    /// Whether the density at `p` is beyond f64 (only a height fog far below
+    /// its reference height can do that); then the closed form, which works in
+    /// log space, is the only safe evaluation.
+    pub fn density_overflows_at(&self, p: DVec3) -> bool {
+        match self {
+            PreparedMedium::HeightFog(m) => -(p.z - m.reference_height) / m.scale_height > 700.0 && m.extinction.iter().any(|b| *b > 0.0),
+            _ => false,
+        }
+    }
+
     /// The medium's name for reports.
     pub fn name(&self) -> &str {
         match self {

@@ -601,6 +601,12 @@ fn integrate_media<const C: usize>(
     lights: &LightSet<C>,
     tolerance: f64,
 ) -> (RayResult<C>, bool) {
+    // An eye inside a medium whose density overflows f64 (a height fog far
+    // below its reference height): the view ray is opaque at once and that
+    // medium's own closed form (saturated: L = J·σ_s/σ_t, T = 0) is the answer.
+    if let Some(m) = media.iter().find(|m| m.density_overflows_at(ray.origin)) {
+        return (m.closed_form(ray, lights), true);
+    }
     let total_tau = |s: f64| {
         let mut t = [0.0; C];
         for m in media {
@@ -639,7 +645,12 @@ fn integrate_media<const C: usize>(
             }
         }
         for c in 0..C {
-            out[c] = if out[c] == 0.0 { 0.0 } else { out[c] * (-tau[c]).exp() };
+            // Where the transmittance has underflowed the product is 0, even if a
+            // height fog's density has overflowed there (∞·0 would be NaN): its
+            // transmittance falls super-exponentially while its density grows
+            // exponentially.
+            let t = (-tau[c]).exp();
+            out[c] = if out[c] == 0.0 || t == 0.0 { 0.0 } else { out[c] * t };
         }
         out
     };
@@ -1002,6 +1013,13 @@ fn render_channels<const C: usize>(scene: &Scene, report: &mut Report, progress:
     report.stats.pixels = pixels;
     report.stats.rays_hit_surface = stats.hits;
     report.stats.rays_without_medium = stats.vacuum;
+    report.stats.non_finite_pixels = stats.non_finite;
+    if stats.non_finite > 0 {
+        report.warnings.push(format!(
+            "{} pixels are not finite (NaN or ∞): this is a bug, please report the scene",
+            stats.non_finite
+        ));
+    }
     if stats.vacuum > 0 && !media.is_empty() {
         report.plan.left_out(
             format!("scattering integral on {} view rays", stats.vacuum),
@@ -1069,8 +1087,14 @@ struct RowStats {
     vacuum: u64,
     numeric: u64,
     not_converged: u64,
+    non_finite: u64,
     max_abs: f64,
     max_rel: f64,
+}
+
+/// `max` that keeps a NaN (f64::max drops it, which would hide a bad pixel).
+fn nan_max(a: f64, b: f64) -> f64 {
+    if a.is_nan() || b.is_nan() { f64::NAN } else { a.max(b) }
 }
 
 impl RowStats {
@@ -1081,16 +1105,19 @@ impl RowStats {
             self.numeric += 1;
             self.not_converged += (!conv) as u64;
         }
-        self.max_abs = self.max_abs.max(s.e.iter().fold(0.0f64, |m, v| m.max(*v)));
-        self.max_rel = self.max_rel.max(s.rel);
+        let finite = s.l.iter().chain(&s.t).chain(&s.st).chain(&s.e).all(|v| v.is_finite()) && s.rel.is_finite();
+        self.non_finite += (!finite) as u64;
+        self.max_abs = nan_max(self.max_abs, s.e.iter().fold(0.0f64, |m, v| nan_max(m, *v)));
+        self.max_rel = nan_max(self.max_rel, s.rel);
     }
     fn merge(&mut self, o: &RowStats) {
         self.hits += o.hits;
         self.vacuum += o.vacuum;
         self.numeric += o.numeric;
         self.not_converged += o.not_converged;
-        self.max_abs = self.max_abs.max(o.max_abs);
-        self.max_rel = self.max_rel.max(o.max_rel);
+        self.non_finite += o.non_finite;
+        self.max_abs = nan_max(self.max_abs, o.max_abs);
+        self.max_rel = nan_max(self.max_rel, o.max_rel);
     }
 }
 
