@@ -22,6 +22,7 @@ pub mod numeric;
 pub mod render;
 pub mod report;
 pub mod scene;
+pub mod sky;
 pub mod spectrum;
 
 pub use render::{Images, RenderError, render};

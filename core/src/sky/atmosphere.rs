@@ -1,0 +1,1 @@
+//! Layered exponential atmosphere (work in progress).

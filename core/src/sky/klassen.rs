@@ -1,0 +1,1 @@
+//! Klassen 1987 sun and sky model (work in progress).
