@@ -5,3 +5,4 @@
 
 pub mod atmosphere;
 pub mod klassen;
+pub mod texture;
