@@ -21,7 +21,7 @@
 //! Error: closed form; rounding bound ≈ 32 ε relative per piece.
 
 use super::phase::PhaseFunction;
-use super::{LightSet, RayResult, ViewRay, exp_neg, rounding_bound, rounding_rel};
+use super::{LightSet, RayResult, ViewRay, rounding_bound, rounding_rel};
 use crate::numeric::{integral_exp_neg, one_minus_exp_neg};
 use glam::DVec3;
 
@@ -227,11 +227,6 @@ impl<const C: usize> Homogeneous<C> {
         }
         total
     }
-}
-
-/// Convenience for tests and callers: per-channel `exp(−σ_t ℓ)`.
-pub fn transmittance_over<const C: usize>(extinction: [f64; C], length: f64) -> [f64; C] {
-    exp_neg(extinction.map(|k| k * length))
 }
 
 #[cfg(test)]

@@ -176,12 +176,6 @@ impl<const C: usize> PreparedMedium<C> {
     }
 }
 
-/// `exp(−x)` per channel.
-#[inline]
-pub(crate) fn exp_neg<const C: usize>(x: [f64; C]) -> [f64; C] {
-    x.map(|v| (-v).exp())
-}
-
 /// Rounding bound on a closed form of the shape `a·(1 − e^{−τ})` evaluated
 /// with expm1 and a handful of products: relative `k·ε`, the number of
 /// roundings `k` counted generously.

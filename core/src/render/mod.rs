@@ -112,14 +112,6 @@ impl Images {
             .collect()
     }
 
-    /// `surface × T + L` for a constant surface radiance, per pixel (for previews and tests).
-    pub fn composite_over(&self, surface: [f32; 3]) -> Vec<[f32; 3]> {
-        self.inscatter
-            .iter()
-            .zip(&self.transmittance)
-            .map(|(l, t)| [surface[0] * t[0] + l[0], surface[1] * t[1] + l[1], surface[2] * t[2] + l[2]])
-            .collect()
-    }
 }
 
 /// Progress callback: `(rows done, rows total)`; called from worker threads.
