@@ -192,6 +192,75 @@ fn render_to_files(
     }
 }
 
+/// Renders a sky world texture (layered atmosphere, Blender's Sky Texture
+/// parameters). Returns `(rgb, report_json)`: an H×W×3 float32 array (row 0
+/// the zenith, the centre column towards +X, as Blender's Environment Texture
+/// maps it) and the report with the matching sun lamp. With `out`, also writes
+/// the EXR (plain R, G, B) and the report next to it.
+#[pyfunction]
+#[pyo3(signature = (sun_elevation_deg, sun_rotation_deg = 0.0, *, air = 1.0, aerosol = 1.0, ozone = 1.0, altitude_m = 0.0, sun_size_deg = 0.545, width = 1024, tolerance = 1e-3, sun_disc = true, out = None))]
+#[allow(clippy::too_many_arguments)]
+fn sky<'py>(
+    py: Python<'py>,
+    sun_elevation_deg: f64,
+    sun_rotation_deg: f64,
+    air: f64,
+    aerosol: f64,
+    ozone: f64,
+    altitude_m: f64,
+    sun_size_deg: f64,
+    width: usize,
+    tolerance: f64,
+    sun_disc: bool,
+    out: Option<PathBuf>,
+) -> PyResult<(Bound<'py, PyAny>, String)> {
+    let params = tyndall_core::sky::atmosphere::AtmosphereParams {
+        air_density: air,
+        aerosol_density: aerosol,
+        ozone_density: ozone,
+        altitude_m,
+        sun_elevation_rad: sun_elevation_deg.to_radians(),
+        sun_rotation_rad: sun_rotation_deg.to_radians(),
+        sun_size_rad: sun_size_deg.to_radians(),
+        ..Default::default()
+    };
+    params.validate().map_err(|(path, message)| {
+        scene_err(
+            py,
+            SceneError {
+                source_name: "sky parameters".into(),
+                path,
+                message,
+            },
+        )
+    })?;
+    if !(1e-6..=0.5).contains(&tolerance) || !(2..=65536).contains(&width) {
+        return Err(PyValueError::new_err(format!(
+            "width must be 2..=65536 and tolerance 1e-6..=0.5, got {width} and {tolerance}"
+        )));
+    }
+    let settings = tyndall_core::sky::texture::TextureSettings {
+        width,
+        tolerance,
+        sun_disc,
+    };
+    let (tex, report) = py.detach(|| tyndall_core::sky::render_world(&params, "atmosphere", &settings));
+    if let Some(path) = out {
+        let written = py.detach(|| {
+            tyndall_core::io::write_rgb_exr(&path, tex.width, tex.height, &tex.rgb).map_err(|e| e.to_string())?;
+            let rp = path.with_extension("report.json");
+            tyndall_cli::write_atomic(&rp, serde_json_report(&report).as_bytes()).map_err(|e| e.to_string())
+        });
+        written.map_err(RenderFailed::new_err)?;
+    }
+    let arr = rgb_array(py, &tex.rgb, tex.width, tex.height)?;
+    Ok((arr, serde_json_report(&report)))
+}
+
+fn serde_json_report(r: &tyndall_core::sky::SkyReport) -> String {
+    tyndall_core::report::to_json_string(r)
+}
+
 /// The JSON Schema of the scene format.
 #[pyfunction]
 fn scene_schema() -> String {
@@ -214,6 +283,7 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(render, m)?)?;
     m.add_function(wrap_pyfunction!(render_to_files, m)?)?;
     m.add_function(wrap_pyfunction!(scene_schema, m)?)?;
+    m.add_function(wrap_pyfunction!(sky, m)?)?;
     m.add_function(wrap_pyfunction!(cli_main, m)?)?;
     m.add("SceneFormatError", m.py().get_type::<SceneFormatError>())?;
     m.add("RenderFailed", m.py().get_type::<RenderFailed>())?;

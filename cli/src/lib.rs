@@ -83,6 +83,53 @@ enum Command {
         #[arg(long)]
         quiet: bool,
     },
+    /// Render a sky as an equirectangular world texture (EXR, plain R, G, B) for
+    /// Blender's World Environment Texture, with the matching sun lamp in the report.
+    Sky {
+        /// Sun elevation above the horizon, degrees (−90..=90; down to −6 for twilight).
+        #[arg(long, allow_hyphen_values = true)]
+        sun_elevation: f64,
+        /// Sun direction as Blender's Sky Texture "Sun Rotation", degrees (0: sun towards +Y,
+        /// increasing counter-clockwise seen from above).
+        #[arg(long, default_value_t = 0.0, allow_hyphen_values = true)]
+        sun_azimuth: f64,
+        /// Sky model.
+        #[arg(long, value_enum, default_value_t = SkyModelName::Atmosphere)]
+        model: SkyModelName,
+        /// Air (Rayleigh) density multiplier, 0..=10 (Blender's Air).
+        #[arg(long, default_value_t = 1.0)]
+        air: f64,
+        /// Aerosol (Mie) density multiplier, 0..=10 (Blender's Dust/Aerosol).
+        #[arg(long, default_value_t = 1.0)]
+        aerosol: f64,
+        /// Ozone density multiplier, 0..=10 (Blender's Ozone).
+        #[arg(long, default_value_t = 1.0)]
+        ozone: f64,
+        /// Observer altitude, m, 0..=100000.
+        #[arg(long, default_value_t = 0.0)]
+        altitude: f64,
+        /// Sun angular diameter, degrees.
+        #[arg(long, default_value_t = 0.545)]
+        sun_size: f64,
+        /// Texture width, px (height is half).
+        #[arg(long, default_value_t = 2048)]
+        width: usize,
+        /// Relative tolerance of the sky (per channel, relative to luminance).
+        #[arg(long, default_value_t = 1e-3)]
+        tolerance: f64,
+        /// Leave the sun disc out of the texture (use the sun lamp).
+        #[arg(long)]
+        no_sun_disc: bool,
+        /// Output EXR.
+        #[arg(long)]
+        out: PathBuf,
+        /// Report JSON. Default: OUT with extension .report.json.
+        #[arg(long)]
+        report: Option<PathBuf>,
+        /// Tone-mapped PNG preview.
+        #[arg(long)]
+        preview: Option<PathBuf>,
+    },
     /// Print the JSON Schema of the scene format.
     Schema,
     /// Measure Mpixel/s of the height fog at a given size, with and without a 10k-triangle mesh.
@@ -100,6 +147,13 @@ enum Command {
         #[arg(long, default_value_t = 0)]
         threads: usize,
     },
+}
+
+/// Sky models the `sky` command offers.
+#[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
+pub enum SkyModelName {
+    /// Layered exponential atmosphere: Rayleigh, Mie, ozone, twilight (Blender's parameters).
+    Atmosphere,
 }
 
 /// Shipped example scenes: (file stem, JSON).
@@ -170,6 +224,57 @@ fn execute(cmd: Command) -> Result<(), CliError> {
                 )?;
                 println!("{}", summary(&r, &exr));
             }
+            Ok(())
+        }
+        Command::Sky {
+            sun_elevation,
+            sun_azimuth,
+            model,
+            air,
+            aerosol,
+            ozone,
+            altitude,
+            sun_size,
+            width,
+            tolerance,
+            no_sun_disc,
+            out,
+            report,
+            preview,
+        } => {
+            let SkyModelName::Atmosphere = model;
+            let params = tyndall_core::sky::atmosphere::AtmosphereParams {
+                air_density: air,
+                aerosol_density: aerosol,
+                ozone_density: ozone,
+                altitude_m: altitude,
+                sun_elevation_rad: sun_elevation.to_radians(),
+                sun_rotation_rad: sun_azimuth.to_radians(),
+                sun_size_rad: sun_size.to_radians(),
+                ..Default::default()
+            };
+            let settings = tyndall_core::sky::texture::TextureSettings {
+                width,
+                tolerance,
+                sun_disc: !no_sun_disc,
+            };
+            let report_path = report.unwrap_or_else(|| out.with_extension("report.json"));
+            let r = sky_to_files(&params, &settings, &out, Some(&report_path), preview.as_deref())?;
+            println!(
+                "{}: {}x{} sky in {:.3} s; {} evaluations, interpolation error {:.2e} (tolerance {:.1e}); sun lamp strength {:.3} W/m², colour {:?}",
+                out.display(),
+                r.resolution[0],
+                r.resolution[1],
+                r.timings.iter().map(|t| t.seconds).sum::<f64>(),
+                r.evaluations,
+                r.interpolation_error,
+                r.tolerance,
+                r.sun_lamp.as_ref().map(|l| l.strength_w_m2).unwrap_or(0.0),
+                r.sun_lamp
+                    .as_ref()
+                    .map(|l| l.color.map(|c| (c * 1000.0).round() / 1000.0))
+                    .unwrap_or([0.0; 3])
+            );
             Ok(())
         }
         Command::Schema => {
@@ -286,6 +391,58 @@ pub fn render_to_files(
     }
     if let Some(rp) = report_path {
         write_atomic(rp, report.to_json().as_bytes())?;
+    }
+    Ok(report)
+}
+
+/// Renders a sky world texture and writes the EXR (plain R, G, B), the report
+/// and optionally a preview; returns the report. Invalid parameters are an error
+/// naming the field.
+pub fn sky_to_files(
+    params: &tyndall_core::sky::atmosphere::AtmosphereParams,
+    settings: &tyndall_core::sky::texture::TextureSettings,
+    out: &Path,
+    report_path: Option<&Path>,
+    preview: Option<&Path>,
+) -> Result<tyndall_core::sky::SkyReport, CliError> {
+    params.validate().map_err(|(path, message)| SceneError {
+        source_name: "sky parameters".into(),
+        path,
+        message,
+    })?;
+    if !(1e-6..=0.5).contains(&settings.tolerance) || settings.width < 2 || settings.width > 65536 {
+        return Err(CliError::Scene(SceneError {
+            source_name: "sky parameters".into(),
+            path: if settings.width < 2 || settings.width > 65536 {
+                "width".into()
+            } else {
+                "tolerance".into()
+            },
+            message: format!(
+                "width must be 2..=65536 and tolerance 1e-6..=0.5, got {} and {}",
+                settings.width, settings.tolerance
+            ),
+        }));
+    }
+    let (tex, mut report) = tyndall_core::sky::render_world(params, "atmosphere", settings);
+    if let Some(parent) = out.parent().filter(|p| !p.as_os_str().is_empty()) {
+        std::fs::create_dir_all(parent).map_err(|source| CliError::Io {
+            path: parent.to_path_buf(),
+            source,
+        })?;
+    }
+    let t = Instant::now();
+    io::write_rgb_exr(out, tex.width, tex.height, &tex.rgb)?;
+    report.timings.push(tyndall_core::report::Timing {
+        stage: "write_exr".into(),
+        seconds: t.elapsed().as_secs_f64(),
+    });
+    if let Some(p) = preview {
+        let stops = io::auto_exposure(&tex.rgb);
+        io::write_png_preview(p, tex.width, tex.height, &tex.rgb, stops)?;
+    }
+    if let Some(rp) = report_path {
+        write_atomic(rp, tyndall_core::report::to_json_string(&report).as_bytes())?;
     }
     Ok(report)
 }

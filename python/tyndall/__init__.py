@@ -32,6 +32,7 @@ from ._native import (
 )
 from ._native import render as _render
 from ._native import render_to_files as _render_to_files
+from ._native import sky as _sky
 
 SceneLike = Union[Scene, str, "os.PathLike[str]", Mapping[str, Any]]
 
@@ -46,6 +47,7 @@ __all__ = [
     "render_to_files",
     "scene_from_json",
     "scene_schema",
+    "sky",
 ]
 
 
@@ -99,3 +101,42 @@ def render_to_files(
         threads,
     )
     return json.loads(report_json)
+
+
+def sky(
+    sun_elevation_deg: float,
+    sun_rotation_deg: float = 0.0,
+    *,
+    air: float = 1.0,
+    aerosol: float = 1.0,
+    ozone: float = 1.0,
+    altitude_m: float = 0.0,
+    sun_size_deg: float = 0.545,
+    width: int = 1024,
+    tolerance: float = 1e-3,
+    sun_disc: bool = True,
+    out: str | os.PathLike[str] | None = None,
+) -> tuple[np.ndarray, dict[str, Any]]:
+    """Render a sky world texture with the layered atmosphere (Blender's Sky Texture parameters).
+
+    Returns ``(rgb, report)``: an H×W×3 float32 array in linear Rec.709, W·m⁻²·sr⁻¹
+    (row 0 the zenith, centre column towards +X, as Blender's Environment Texture maps
+    it), and the report with ``sun_lamp`` (direction, Blender rotation, colour, strength),
+    timings, the error estimate and the plan. ``sun_rotation_deg`` is Blender's Sun
+    Rotation. With ``out``, the EXR (plain R, G, B) and ``OUT.report.json`` are written.
+    Invalid parameters raise :class:`SceneFormatError` naming the field.
+    """
+    rgb, report_json = _sky(
+        sun_elevation_deg,
+        sun_rotation_deg,
+        air=air,
+        aerosol=aerosol,
+        ozone=ozone,
+        altitude_m=altitude_m,
+        sun_size_deg=sun_size_deg,
+        width=width,
+        tolerance=tolerance,
+        sun_disc=sun_disc,
+        out=os.fspath(out) if out is not None else None,
+    )
+    return rgb, json.loads(report_json)

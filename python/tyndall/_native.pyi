@@ -31,3 +31,17 @@ def render_to_files(
 ) -> str: ...
 def scene_schema() -> str: ...
 def cli_main(argv: list[str]) -> int: ...
+def sky(
+    sun_elevation_deg: float,
+    sun_rotation_deg: float = 0.0,
+    *,
+    air: float = 1.0,
+    aerosol: float = 1.0,
+    ozone: float = 1.0,
+    altitude_m: float = 0.0,
+    sun_size_deg: float = 0.545,
+    width: int = 1024,
+    tolerance: float = 1e-3,
+    sun_disc: bool = True,
+    out: str | None = None,
+) -> tuple[np.ndarray, str]: ...

@@ -111,7 +111,6 @@ impl Images {
             })
             .collect()
     }
-
 }
 
 /// Progress callback: `(rows done, rows total)`; called from worker threads.

@@ -7,8 +7,103 @@ pub mod atmosphere;
 pub mod klassen;
 pub mod texture;
 
+use crate::report::{Plan, Timing};
 use glam::DVec3;
 use serde::{Deserialize, Serialize};
+use std::time::Instant;
+
+/// The report of a sky render.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct SkyReport {
+    /// Tyndall version.
+    pub tyndall_version: String,
+    /// Which model (`atmosphere` or `klassen`).
+    pub model: String,
+    /// Texture size `[width, height]`.
+    pub resolution: [usize; 2],
+    /// Wall time per stage.
+    pub timings: Vec<Timing>,
+    /// The matching sun lamp.
+    pub sun_lamp: Option<SunLamp>,
+    /// Requested relative tolerance (per channel, relative to luminance).
+    pub tolerance: f64,
+    /// Largest interpolation error measured between grid nodes, relative to luminance.
+    pub interpolation_error: f64,
+    /// Largest model (quadrature) error estimate at the nodes, relative to luminance.
+    pub model_error: f64,
+    /// Sky model evaluations (each a full spectral single-scattering integral).
+    pub evaluations: usize,
+    /// Grid cells.
+    pub cells: usize,
+    /// Pixels supersampled for the sun disc.
+    pub sun_disc_pixels: usize,
+    /// Grid cells refined to the pixel size that still miss the tolerance (steps in the sky).
+    pub pixel_limited_cells: usize,
+    /// Their largest interpolation miss, relative to luminance.
+    pub pixel_limited_error: f64,
+    /// What was computed and what was left out.
+    pub plan: Plan,
+}
+
+/// Renders a world texture of `model` and the report (timings, error, sun lamp, plan).
+pub fn render_world(
+    model: &dyn texture::SkyModel,
+    model_name: &str,
+    settings: &texture::TextureSettings,
+) -> (texture::WorldTexture, SkyReport) {
+    let t0 = Instant::now();
+    let tex = texture::build_world_texture(model, settings);
+    let seconds = t0.elapsed().as_secs_f64();
+    let mut plan = Plan {
+        colour_path: "spectral (81 samples) at the grid nodes; pixels interpolated in linear Rec.709".into(),
+        ..Default::default()
+    };
+    plan.computed(
+        "sky",
+        format!(
+            "single scattering, {} spectral evaluations on an adaptive grid of {} cells over (view zenith, azimuth from the sun), phase-free components interpolated and multiplied by the exact phase functions per pixel",
+            tex.evaluations, tex.cells
+        ),
+    );
+    plan.left_out(
+        format!("per-pixel integrals ({} pixels)", tex.width * tex.height),
+        "the sky depends only on the view zenith angle and the azimuth from the sun: pixels are interpolated from the grid within the tolerance",
+    );
+    plan.left_out("multiple scattering", "not included (single scattering only)");
+    plan.left_out("ground", "rays below the horizon carry the light scattered by the air between the observer and the ground; the ground itself is not rendered");
+    if settings.sun_disc {
+        plan.computed(
+            "sun disc",
+            format!(
+                "limb-darkened disc carrying the sun's irradiance after the atmosphere, {} pixels supersampled 8×8",
+                tex.sun_pixels
+            ),
+        );
+    } else {
+        plan.left_out("sun disc", "not requested: use the sun lamp instead");
+    }
+    let lamp = SunLamp::new(model.sun_direction(), tex.sun_rgb_irradiance, model.sun_angular_diameter());
+    let report = SkyReport {
+        tyndall_version: crate::VERSION.into(),
+        model: model_name.into(),
+        resolution: [tex.width, tex.height],
+        timings: vec![Timing {
+            stage: "sky".into(),
+            seconds,
+        }],
+        sun_lamp: Some(lamp),
+        tolerance: settings.tolerance,
+        interpolation_error: tex.interpolation_error,
+        model_error: tex.model_error,
+        evaluations: tex.evaluations,
+        cells: tex.cells,
+        sun_disc_pixels: tex.sun_pixels,
+        pixel_limited_cells: tex.pixel_limited_cells,
+        pixel_limited_error: tex.pixel_limited_error,
+        plan,
+    };
+    (tex, report)
+}
 
 /// The values for a Blender sun lamp that matches a sky: direction, colour and
 /// strength from the same model as the sky.
@@ -31,6 +126,9 @@ pub struct SunLamp {
     pub rgb_irradiance_w_m2: [f64; 3],
     /// Angular diameter, degrees (Blender's Angle).
     pub angle_deg: f64,
+    /// The same direction as Blender's Sky Texture "Sun Rotation", degrees
+    /// (0: sun towards +Y; increasing counter-clockwise seen from above).
+    pub blender_sun_rotation_deg: f64,
 }
 
 impl SunLamp {
@@ -60,6 +158,7 @@ impl SunLamp {
             strength_w_m2: strength,
             rgb_irradiance_w_m2: rgb,
             angle_deg: diameter_rad.to_degrees(),
+            blender_sun_rotation_deg: (-d.x).atan2(d.y).to_degrees(),
         }
     }
 }

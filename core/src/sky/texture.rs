@@ -94,6 +94,12 @@ pub struct WorldTexture {
     pub interpolation_error: f64,
     /// Largest model error estimate relative to luminance at the nodes.
     pub model_error: f64,
+    /// Cells refined down to the output's pixel size that still miss the
+    /// tolerance (steps in the sky: the earth's shadow, the horizon); there the
+    /// texture is as good as sampling each pixel's centre.
+    pub pixel_limited_cells: usize,
+    /// Largest interpolation miss in those cells, relative to luminance.
+    pub pixel_limited_error: f64,
     /// Pixels supersampled for the sun disc.
     pub sun_pixels: usize,
     /// The sun for a Blender sun lamp: RGB irradiance, W·m⁻² per channel.
@@ -183,6 +189,28 @@ fn bilinear(c: &[[f64; 3]; 4], s: f64, t: f64) -> [f64; 3] {
     out
 }
 
+/// Refinement limits of one half of the domain.
+struct Limits {
+    /// Smallest cell extent along θ and Δφ, ticks (half an output pixel).
+    min_su: u32,
+    min_sv: u32,
+    /// Luminance floor for relative errors, as a fraction of the brightest sky.
+    floor_fraction: f64,
+}
+
+/// What the refinement measured.
+#[derive(Debug, Default)]
+struct Stats {
+    evaluations: usize,
+    /// Largest interpolation miss of cells that met the tolerance.
+    interpolation: f64,
+    model_error: f64,
+    brightest: f64,
+    /// Cells that reached the pixel size without meeting the tolerance (a step: the earth's shadow, the horizon).
+    pixel_limited: usize,
+    pixel_limited_error: f64,
+}
+
 /// A sky evaluation at one grid point: phase-free component RGB values and the error estimate.
 type PointEval = (Vec<(Option<PhaseFunction>, [f64; 3])>, f64);
 
@@ -200,7 +228,8 @@ impl Half {
         eval: &(dyn Fn(f64, f64) -> PointEval + Sync),
         cos_mu: &(dyn Fn(f64, f64) -> f64 + Sync),
         tol: f64,
-        stats: &mut (usize, f64, f64),
+        limits: &Limits,
+        stats: &mut Stats,
     ) -> Half {
         let mut half = Half {
             theta0,
@@ -250,7 +279,7 @@ impl Half {
                 .par_iter()
                 .map(|&(u, v)| ((u, v), eval(half.theta(u), Half::dphi(v))))
                 .collect();
-            stats.0 += values.len();
+            stats.evaluations += values.len();
             for (key, (parts, err)) in values {
                 if half.comps.phases.is_empty() {
                     half.comps.phases = parts.iter().map(|p| p.0).collect();
@@ -262,7 +291,11 @@ impl Half {
                         total[c] += w.get(j).copied().unwrap_or(1.0) * rgb[c];
                     }
                 }
-                stats.2 = stats.2.max(err / luminance(&total).abs().max(1e-300));
+                let y = luminance(&total).abs();
+                stats.model_error = stats
+                    .model_error
+                    .max(err / y.max(limits.floor_fraction * stats.brightest).max(1e-300));
+                stats.brightest = stats.brightest.max(y);
                 let index = (half.comps.values.len() / half.comps.k().max(1)) as u32;
                 for (_, rgb) in parts {
                     half.comps.values.push(rgb);
@@ -276,14 +309,11 @@ impl Half {
                 let corners = [at(0, 0), at(su, 0), at(0, sv), at(su, sv)];
                 let mu_at = |du: u32, dv: u32| cos_mu(half.theta(c.u0 + du), Half::dphi(c.v0 + dv));
                 let corner_mu = [mu_at(0, 0), mu_at(su, 0), mu_at(0, sv), mu_at(su, sv)];
-                // A floor for black cells (the night side): 1e-12 of the cell's brightest corner.
-                let floor = corners
-                    .iter()
-                    .zip(corner_mu)
-                    .map(|(p, mu)| luminance(&half.comps.combine(*p, &half.comps.weights(mu))))
-                    .fold(0.0f64, f64::max)
-                    .max(1e-300)
-                    * 1e-12;
+                // Errors are relative to the luminance at the point, but never to
+                // less than a fraction of the brightest sky seen (the dark side of
+                // twilight would otherwise ask for relative accuracy in the dark).
+                let _ = corner_mu;
+                let floor = (limits.floor_fraction * stats.brightest).max(1e-300);
                 let miss = |pts: &[(u32, u32, f64, f64)]| -> f64 {
                     let mut worst = 0.0f64;
                     for &(du, dv, ss, tt) in pts {
@@ -301,8 +331,12 @@ impl Half {
                 let along_u = miss(&[(hu, 0, 0.5, 0.0), (hu, sv, 0.5, 1.0)]);
                 let along_v = miss(&[(0, hv, 0.0, 0.5), (su, hv, 1.0, 0.5)]);
                 let centre = miss(&[(hu, hv, 0.5, 0.5)]);
-                let split_u = su > 1 && (along_u > tol || (centre > tol && along_v <= tol));
-                let split_v = sv > 1 && (along_v > tol || (centre > tol && along_u <= tol));
+                // Never finer than the output pixels: below that the pixel grid
+                // itself is the resolution (counted and reported separately).
+                let can_u = su > limits.min_su;
+                let can_v = sv > limits.min_sv;
+                let split_u = can_u && (along_u > tol || (centre > tol && (along_v <= tol || !can_v)));
+                let split_v = can_v && (along_v > tol || (centre > tol && (along_u <= tol || !can_u)));
                 if split_u || split_v {
                     let mut child = |cell: Cell| -> u32 {
                         let k = half.nodes.len() as u32;
@@ -330,7 +364,13 @@ impl Half {
                         Node::SplitV([a, b])
                     };
                 } else {
-                    stats.1 = stats.1.max(along_u.max(along_v).max(centre));
+                    let miss_all = along_u.max(along_v).max(centre);
+                    if miss_all > tol {
+                        stats.pixel_limited += 1;
+                        stats.pixel_limited_error = stats.pixel_limited_error.max(miss_all);
+                    } else {
+                        stats.interpolation = stats.interpolation.max(miss_all);
+                    }
                     half.nodes[idx as usize] = Node::Leaf(corners);
                 }
             }
@@ -411,7 +451,8 @@ pub fn build_world_texture(model: &dyn SkyModel, settings: &TextureSettings) -> 
         DVec3::new(st * phi.cos(), st * phi.sin(), ct)
     };
     let eval = |theta: f64, dphi: f64| -> PointEval {
-        let (parts, e) = model.sky_components(direction(theta, dphi), 0.25 * tol);
+        // The model to a twentieth of the tolerance, so that refinement does not chase quadrature noise.
+        let (parts, e) = model.sky_components(direction(theta, dphi), 0.05 * tol);
         let err = spectrum::spectrum_to_rec709(&e.map(f64::abs))
             .iter()
             .fold(0.0f64, |a, b| a.max(b.abs()));
@@ -419,11 +460,17 @@ pub fn build_world_texture(model: &dyn SkyModel, settings: &TextureSettings) -> 
     };
     let cos_mu = |theta: f64, dphi: f64| direction(theta, dphi).dot(sun);
     let horizon = model.horizon_zenith().clamp(1e-6, PI - 1e-6);
-    let mut stats = (0usize, 0.0f64, 0.0f64);
+    let mut stats = Stats::default();
     // Each half is evaluated strictly on its own side of the horizon.
     const SIDE: f64 = 1e-9;
-    let upper = Half::build(0.0, horizon - SIDE, &eval, &cos_mu, tol, &mut stats);
-    let lower = Half::build(horizon + SIDE, PI, &eval, &cos_mu, tol, &mut stats);
+    // Cells stop at half an output pixel: θ pixels are π/height, Δφ pixels 2π/width.
+    let limits = |theta_span: f64| Limits {
+        min_su: ((f64::from(TICKS) * 0.5 * (PI / height as f64) / theta_span) as u32).max(1),
+        min_sv: ((f64::from(TICKS) * 0.5 * (2.0 * PI / width as f64) / PI) as u32).max(1),
+        floor_fraction: 1e-4,
+    };
+    let upper = Half::build(0.0, horizon - SIDE, &eval, &cos_mu, tol, &limits(horizon), &mut stats);
+    let lower = Half::build(horizon + SIDE, PI, &eval, &cos_mu, tol, &limits(PI - horizon), &mut stats);
     let lookup = |d: DVec3| -> [f64; 3] {
         let theta = d.z.clamp(-1.0, 1.0).acos();
         let mut dphi = (d.y.atan2(d.x) - sun_phi).rem_euclid(2.0 * PI);
@@ -498,10 +545,12 @@ pub fn build_world_texture(model: &dyn SkyModel, settings: &TextureSettings) -> 
         width,
         height,
         rgb,
-        evaluations: stats.0,
+        evaluations: stats.evaluations,
         cells: upper.cells() + lower.cells(),
-        interpolation_error: stats.1,
-        model_error: stats.2,
+        interpolation_error: stats.interpolation,
+        model_error: stats.model_error,
+        pixel_limited_cells: stats.pixel_limited,
+        pixel_limited_error: stats.pixel_limited_error,
         sun_pixels,
         sun_rgb_irradiance: sun_rgb,
     }
@@ -596,6 +645,44 @@ mod tests {
             t.evaluations,
             t.width * t.height
         );
+    }
+
+    #[test]
+    fn atmosphere_texture_matches_direct_evaluation() {
+        use crate::sky::atmosphere::AtmosphereParams;
+        for elevation in [40.0f64, 5.0] {
+            let atm = AtmosphereParams {
+                sun_elevation_rad: elevation.to_radians(),
+                sun_rotation_rad: 0.7,
+                ..Default::default()
+            };
+            let tol = 1e-3;
+            let t = build_world_texture(
+                &atm,
+                &TextureSettings {
+                    width: 128,
+                    tolerance: tol,
+                    sun_disc: false,
+                },
+            );
+            let mut worst = 0.0f64;
+            // Every 3rd pixel of the upper hemisphere against the model itself.
+            for j in (0..t.height / 2).step_by(3) {
+                for i in (0..t.width).step_by(3) {
+                    let d = equirect_direction(i as f64 + 0.5, j as f64 + 0.5, t.width, t.height);
+                    let exact = spectrum::spectrum_to_rec709(&atm.sky_spectral_radiance(d, 1e-7).0);
+                    let y = luminance(&exact);
+                    for k in 0..3 {
+                        worst = worst.max((f64::from(t.rgb[j * t.width + i][k]) - exact[k]).abs() / y);
+                    }
+                }
+            }
+            eprintln!(
+                "atmosphere, sun {elevation}°: worst pixel {worst:.3e}, reported {:.3e}, {} evaluations",
+                t.interpolation_error, t.evaluations
+            );
+            assert!(worst <= 2.0 * tol, "sun {elevation}°: worst pixel error {worst:.3e}");
+        }
     }
 
     #[test]

@@ -1,0 +1,98 @@
+"""The sky world texture from Python and the CLI: shape, orientation, sun lamp, EXR, errors."""
+
+from __future__ import annotations
+
+import math
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import OpenEXR
+import pytest
+import tyndall
+
+
+def blender_sun_direction(elevation_deg: float, rotation_deg: float) -> np.ndarray:
+    """Cycles' Nishita sky: spherical_to_direction(elevation − π/2, rotation − π/2)
+    = (−cos e·sin ρ, cos e·cos ρ, sin e), restated independently of the core."""
+    e, r = math.radians(elevation_deg), math.radians(rotation_deg)
+    return np.array([-math.cos(e) * math.sin(r), math.cos(e) * math.cos(r), math.sin(e)])
+
+
+def test_sky_texture_shape_colour_and_sun_lamp() -> None:
+    rgb, report = tyndall.sky(30.0, 40.0, width=128)
+    assert rgb.shape == (64, 128, 3) and rgb.dtype == np.float32
+    assert np.isfinite(rgb).all() and (rgb >= 0).all()
+    # Row 0 is the zenith: blue sky (b > r) at noon-ish elevations.
+    zenith = rgb[0].mean(axis=0)
+    assert zenith[2] > zenith[0] > 0
+    lamp = report["sun_lamp"]
+    np.testing.assert_allclose(lamp["direction_to_sun"], blender_sun_direction(30.0, 40.0), atol=1e-12)
+    assert lamp["elevation_deg"] == pytest.approx(30.0, abs=1e-9)
+    assert lamp["blender_sun_rotation_deg"] == pytest.approx(40.0, abs=1e-9)
+    assert max(lamp["color"]) == pytest.approx(1.0) and lamp["strength_w_m2"] > 0
+    assert report["interpolation_error"] <= report["tolerance"]
+    left_out = " ".join(item["what"] for item in report["plan"]["left_out"])
+    assert "multiple scattering" in left_out and "per-pixel integrals" in left_out
+
+
+def test_sky_orientation_matches_the_environment_mapping() -> None:
+    # The brightest pixel (the sun disc) sits where Cycles' direction_to_equirectangular
+    # puts the sun: u = 0.5 − atan2(y, x)/2π, v = 1 − acos(z)/π (v = 0 is the bottom row).
+    rgb, _ = tyndall.sky(20.0, 120.0, width=512, tolerance=1e-2)
+    h, w, _ = rgb.shape
+    lum = rgb @ np.array([0.2126, 0.7152, 0.0722], dtype=np.float32)
+    j, i = np.unravel_index(np.argmax(lum[: h // 2]), lum[: h // 2].shape)
+    d = blender_sun_direction(20.0, 120.0)
+    u = 0.5 - math.atan2(d[1], d[0]) / (2 * math.pi)
+    v = 1.0 - math.acos(d[2]) / math.pi
+    assert abs((i + 0.5) / w - u) < 2.0 / w
+    assert abs((j + 0.5) / h - (1.0 - v)) < 2.0 / h
+
+
+def test_sky_sun_below_horizon_has_no_sun_lamp_light() -> None:
+    rgb, report = tyndall.sky(-4.0, 0.0, width=64)
+    assert np.isfinite(rgb).all()
+    assert report["sun_lamp"]["strength_w_m2"] == 0.0
+    assert rgb[:16].max() > 0  # twilight sky still lit
+
+
+def test_sky_exr_is_plain_rgb(tmp_path: Path) -> None:
+    out = tmp_path / "sky.exr"
+    rgb, _ = tyndall.sky(45.0, 10.0, width=64, out=out)
+    assert (tmp_path / "sky.report.json").exists()
+    with OpenEXR.File(str(out)) as f:
+        assert len(f.parts) == 1
+        assert sorted(c.name for c in f.header()["channels"]) == ["B", "G", "R"]
+        # The OpenEXR package groups plain R, G, B into one H×W×3 array.
+        np.testing.assert_array_equal(f.channels()["RGB"].pixels, rgb)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "field"),
+    [({"sun_elevation_deg": 95.0}, "sun_elevation_rad"), ({"sun_elevation_deg": 10.0, "ozone": -1.0}, "ozone_density")],
+)
+def test_sky_rejects_bad_parameters_naming_the_field(kwargs: dict[str, float], field: str) -> None:
+    with pytest.raises(tyndall.SceneFormatError) as info:
+        tyndall.sky(**kwargs)  # type: ignore[arg-type]
+    assert info.value.path == field
+
+
+def test_sky_cli(tmp_path: Path, tyndall_exe: Path) -> None:
+    out = tmp_path / "sky.exr"
+    r = subprocess.run(
+        [str(tyndall_exe), "sky", "--sun-elevation", "-2", "--sun-azimuth", "30", "--width", "64", "--out", str(out)],
+        capture_output=True,
+        text=True,
+        check=False,
+    )
+    assert r.returncode == 0, r.stderr
+    assert out.exists() and out.with_suffix(".report.json").exists()
+    bad = subprocess.run(
+        [str(tyndall_exe), "sky", "--sun-elevation", "100", "--out", str(tmp_path / "x.exr")],
+        capture_output=True,
+        text=True,
+        check=False,
+    )
+    assert bad.returncode == 1 and "sun_elevation_rad" in bad.stderr
+    assert not (tmp_path / "x.exr").exists()
