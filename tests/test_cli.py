@@ -145,8 +145,12 @@ def test_demo_writes_exr_png_and_report_per_example(tyndall_exe: Path, repo_root
     r = run(tyndall_exe, "demo", "--out-dir", out_dir, "--quiet")
     assert r.returncode == 0, r.stderr
     examples = sorted((repo_root / "examples").glob("*.json"))
-    expected = sorted(f"{p.stem}{ext}" for p in examples for ext in (".exr", ".png", ".report.json"))
+    stems = [p.stem for p in examples] + ["sky_atmosphere"]
+    expected = sorted(f"{stem}{ext}" for stem in stems for ext in (".exr", ".png", ".report.json"))
     assert sorted(p.name for p in out_dir.iterdir()) == expected
+    sky = json.loads((out_dir / "sky_atmosphere.report.json").read_text())
+    assert sky["resolution"] == [1024, 512] and sky["sun_lamp"]["strength_w_m2"] > 0
+    assert png_size((out_dir / "sky_atmosphere.png").read_bytes()) == (1024, 512)
     for example in examples:
         width, height = json.loads(example.read_text())["camera"]["resolution"]
         assert png_size((out_dir / f"{example.stem}.png").read_bytes()) == (width, height)

@@ -96,3 +96,40 @@ def test_sky_cli(tmp_path: Path, tyndall_exe: Path) -> None:
     )
     assert bad.returncode == 1 and "sun_elevation_rad" in bad.stderr
     assert not (tmp_path / "x.exr").exists()
+    klassen = tmp_path / "klassen.exr"
+    r = subprocess.run(
+        [
+            str(tyndall_exe),
+            "sky",
+            "--model",
+            "klassen",
+            "--sun-elevation",
+            "15",
+            "--width",
+            "64",
+            "--out",
+            str(klassen),
+        ],
+        capture_output=True,
+        text=True,
+        check=False,
+    )
+    assert r.returncode == 0, r.stderr
+    assert '"model": "klassen"' in klassen.with_suffix(".report.json").read_text()
+    bad = subprocess.run(
+        [
+            str(tyndall_exe),
+            "sky",
+            "--model",
+            "klassen",
+            "--sun-elevation",
+            "15",
+            "--visibility=-5",
+            "--out",
+            str(klassen),
+        ],
+        capture_output=True,
+        text=True,
+        check=False,
+    )
+    assert bad.returncode == 1 and "visibility_m" in bad.stderr

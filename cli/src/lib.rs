@@ -74,7 +74,7 @@ enum Command {
         #[arg(long)]
         quiet: bool,
     },
-    /// Render the shipped foggy examples into a directory: EXR, PNG previews, reports.
+    /// Render the shipped foggy examples and a sky into a directory: EXR, PNG previews, reports.
     Demo {
         /// Output directory.
         #[arg(long, default_value = "tyndall-demo")]
@@ -111,6 +111,12 @@ enum Command {
         /// Sun angular diameter, degrees.
         #[arg(long, default_value_t = 0.545)]
         sun_size: f64,
+        /// Klassen: meteorological visibility of the haze, m (Koschmieder; 23000 is clear).
+        #[arg(long, default_value_t = 23000.0)]
+        visibility: f64,
+        /// Klassen: top of the haze layer above the ground, m.
+        #[arg(long, default_value_t = 1500.0)]
+        haze_top: f64,
         /// Texture width, px (height is half).
         #[arg(long, default_value_t = 2048)]
         width: usize,
@@ -154,6 +160,8 @@ enum Command {
 pub enum SkyModelName {
     /// Layered exponential atmosphere: Rayleigh, Mie, ozone, twilight (Blender's parameters).
     Atmosphere,
+    /// Klassen 1987: spherical earth, constant-density haze shell, spectral sun and sky.
+    Klassen,
 }
 
 /// Shipped example scenes: (file stem, JSON).
@@ -224,6 +232,34 @@ fn execute(cmd: Command) -> Result<(), CliError> {
                 )?;
                 println!("{}", summary(&r, &exr));
             }
+            // And a sky: the layered atmosphere with a low afternoon sun, as a world texture.
+            let sky = SkyChoice::Atmosphere(tyndall_core::sky::atmosphere::AtmosphereParams {
+                sun_elevation_rad: 12f64.to_radians(),
+                sun_rotation_rad: 200f64.to_radians(),
+                ..Default::default()
+            });
+            let settings = tyndall_core::sky::texture::TextureSettings {
+                width: 1024,
+                tolerance: 1e-3,
+                sun_disc: true,
+            };
+            let sky_exr = out_dir.join("sky_atmosphere.exr");
+            let r = sky_to_files(
+                &sky,
+                &settings,
+                &sky_exr,
+                Some(&out_dir.join("sky_atmosphere.report.json")),
+                Some(&out_dir.join("sky_atmosphere.png")),
+            )?;
+            println!(
+                "{}: {}x{} sky in {:.3} s; interpolation error {:.2e}; sun lamp strength {:.1} W/m²",
+                sky_exr.display(),
+                r.resolution[0],
+                r.resolution[1],
+                r.timings.iter().map(|t| t.seconds).sum::<f64>(),
+                r.interpolation_error,
+                r.sun_lamp.as_ref().map(|l| l.strength_w_m2).unwrap_or(0.0)
+            );
             Ok(())
         }
         Command::Sky {
@@ -235,6 +271,8 @@ fn execute(cmd: Command) -> Result<(), CliError> {
             ozone,
             altitude,
             sun_size,
+            visibility,
+            haze_top,
             width,
             tolerance,
             no_sun_disc,
@@ -242,16 +280,28 @@ fn execute(cmd: Command) -> Result<(), CliError> {
             report,
             preview,
         } => {
-            let SkyModelName::Atmosphere = model;
-            let params = tyndall_core::sky::atmosphere::AtmosphereParams {
-                air_density: air,
-                aerosol_density: aerosol,
-                ozone_density: ozone,
-                altitude_m: altitude,
-                sun_elevation_rad: sun_elevation.to_radians(),
-                sun_rotation_rad: sun_azimuth.to_radians(),
-                sun_size_rad: sun_size.to_radians(),
-                ..Default::default()
+            let sky = match model {
+                SkyModelName::Atmosphere => SkyChoice::Atmosphere(tyndall_core::sky::atmosphere::AtmosphereParams {
+                    air_density: air,
+                    aerosol_density: aerosol,
+                    ozone_density: ozone,
+                    altitude_m: altitude,
+                    sun_elevation_rad: sun_elevation.to_radians(),
+                    sun_rotation_rad: sun_azimuth.to_radians(),
+                    sun_size_rad: sun_size.to_radians(),
+                    ..Default::default()
+                }),
+                SkyModelName::Klassen => SkyChoice::Klassen {
+                    params: tyndall_core::sky::klassen::KlassenParams {
+                        visibility_m: visibility,
+                        haze_top_m: haze_top,
+                        observer_altitude_m: altitude,
+                        ..Default::default()
+                    },
+                    sun_elevation_rad: sun_elevation.to_radians(),
+                    sun_rotation_rad: sun_azimuth.to_radians(),
+                    sun_size_rad: sun_size.to_radians(),
+                },
             };
             let settings = tyndall_core::sky::texture::TextureSettings {
                 width,
@@ -259,7 +309,7 @@ fn execute(cmd: Command) -> Result<(), CliError> {
                 sun_disc: !no_sun_disc,
             };
             let report_path = report.unwrap_or_else(|| out.with_extension("report.json"));
-            let r = sky_to_files(&params, &settings, &out, Some(&report_path), preview.as_deref())?;
+            let r = sky_to_files(&sky, &settings, &out, Some(&report_path), preview.as_deref())?;
             println!(
                 "{}: {}x{} sky in {:.3} s; {} evaluations, interpolation error {:.2e} (tolerance {:.1e}); sun lamp strength {:.3} W/m², colour {:?}",
                 out.display(),
@@ -395,21 +445,76 @@ pub fn render_to_files(
     Ok(report)
 }
 
+/// A sky model with its parameters, as the `sky` command builds it.
+#[derive(Debug, Clone)]
+pub enum SkyChoice {
+    /// The layered atmosphere (its parameters include the sun).
+    Atmosphere(tyndall_core::sky::atmosphere::AtmosphereParams),
+    /// Klassen's model and the sun.
+    Klassen {
+        /// Model parameters.
+        params: tyndall_core::sky::klassen::KlassenParams,
+        /// Sun elevation, rad.
+        sun_elevation_rad: f64,
+        /// Blender's Sun Rotation, rad.
+        sun_rotation_rad: f64,
+        /// Sun angular diameter, rad.
+        sun_size_rad: f64,
+    },
+}
+
 /// Renders a sky world texture and writes the EXR (plain R, G, B), the report
 /// and optionally a preview; returns the report. Invalid parameters are an error
 /// naming the field.
 pub fn sky_to_files(
-    params: &tyndall_core::sky::atmosphere::AtmosphereParams,
+    sky: &SkyChoice,
     settings: &tyndall_core::sky::texture::TextureSettings,
     out: &Path,
     report_path: Option<&Path>,
     preview: Option<&Path>,
 ) -> Result<tyndall_core::sky::SkyReport, CliError> {
-    params.validate().map_err(|(path, message)| SceneError {
-        source_name: "sky parameters".into(),
-        path,
-        message,
-    })?;
+    let bad = |path: String, message: String| {
+        CliError::Scene(SceneError {
+            source_name: "sky parameters".into(),
+            path,
+            message,
+        })
+    };
+    let klassen_world;
+    let (model, name): (&dyn tyndall_core::sky::texture::SkyModel, &str) = match sky {
+        SkyChoice::Atmosphere(p) => {
+            p.validate().map_err(|(path, message)| bad(path, message))?;
+            (p, "atmosphere")
+        }
+        SkyChoice::Klassen {
+            params,
+            sun_elevation_rad,
+            sun_rotation_rad,
+            sun_size_rad,
+        } => {
+            for (field, v, lo, hi) in [
+                (
+                    "sun_elevation_rad",
+                    *sun_elevation_rad,
+                    -std::f64::consts::FRAC_PI_2,
+                    std::f64::consts::FRAC_PI_2,
+                ),
+                ("sun_rotation_rad", *sun_rotation_rad, -1e3, 1e3),
+                ("sun_size_rad", *sun_size_rad, 0.0, 0.1),
+            ] {
+                if !(v.is_finite() && (lo..=hi).contains(&v)) {
+                    return Err(bad(field.into(), format!("{v} is outside {lo}..={hi}")));
+                }
+            }
+            let k = tyndall_core::sky::klassen::KlassenSky::new(*params).map_err(|(path, message)| bad(path.into(), message))?;
+            klassen_world = tyndall_core::sky::klassen::KlassenWorld {
+                sky: k,
+                sun: tyndall_core::sky::blender_sun_direction(*sun_elevation_rad, *sun_rotation_rad),
+                sun_diameter_rad: *sun_size_rad,
+            };
+            (&klassen_world, "klassen")
+        }
+    };
     if !(1e-6..=0.5).contains(&settings.tolerance) || settings.width < 2 || settings.width > 65536 {
         return Err(CliError::Scene(SceneError {
             source_name: "sky parameters".into(),
@@ -424,7 +529,7 @@ pub fn sky_to_files(
             ),
         }));
     }
-    let (tex, mut report) = tyndall_core::sky::render_world(params, "atmosphere", settings);
+    let (tex, mut report) = tyndall_core::sky::render_world(model, name, settings);
     if let Some(parent) = out.parent().filter(|p| !p.as_os_str().is_empty()) {
         std::fs::create_dir_all(parent).map_err(|source| CliError::Io {
             path: parent.to_path_buf(),

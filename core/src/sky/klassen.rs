@@ -1352,6 +1352,56 @@ fn gk15(f: &mut impl FnMut(usize, f64) -> Spectrum, pi: usize, a: f64, b: f64) -
     (k, err)
 }
 
+/// Klassen's sky with a sun, for world textures ([`crate::sky::texture`]).
+#[derive(Debug, Clone)]
+pub struct KlassenWorld {
+    /// The model.
+    pub sky: KlassenSky,
+    /// Unit vector towards the sun (+Z up).
+    pub sun: DVec3,
+    /// Angular diameter of the sun, rad.
+    pub sun_diameter_rad: f64,
+}
+
+impl crate::sky::texture::SkyModel for KlassenWorld {
+    fn sky_radiance(&self, view_dir: DVec3, rel_tol: f64) -> (Spectrum, Spectrum) {
+        let s = self.sky.sky_sample(view_dir, self.sun, rel_tol, SkyIntegrator::GaussKronrod);
+        (s.radiance, s.error)
+    }
+
+    /// The haze's phase-free part with the haze phase function, and the
+    /// seed's constant blue (direction-independent, no phase function).
+    fn sky_components(&self, view_dir: DVec3, rel_tol: f64) -> (Vec<(Option<PhaseFunction>, Spectrum)>, Spectrum) {
+        let s = self.sky.sky_sample(view_dir, self.sun, rel_tol, SkyIntegrator::GaussKronrod);
+        (
+            vec![(Some(self.sky.params().haze_phase), s.haze_phase_free), (None, s.blue_sky_radiance)],
+            s.error,
+        )
+    }
+
+    fn sun_direction(&self) -> DVec3 {
+        self.sun
+    }
+
+    fn sun_irradiance(&self) -> Spectrum {
+        self.sky.sun_spectral_irradiance(self.sun.z.clamp(-1.0, 1.0).asin())
+    }
+
+    fn sun_angular_diameter(&self) -> f64 {
+        self.sun_diameter_rad
+    }
+
+    fn horizon_zenith(&self) -> f64 {
+        std::f64::consts::FRAC_PI_2 - self.horizon_elevation()
+    }
+}
+
+impl KlassenWorld {
+    fn horizon_elevation(&self) -> f64 {
+        self.sky.horizon_elevation_rad()
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -12,6 +12,15 @@ use glam::DVec3;
 use serde::{Deserialize, Serialize};
 use std::time::Instant;
 
+/// Direction towards the sun from Blender's Sky Texture angles (Cycles'
+/// `spherical_to_direction(elevation − π/2, rotation − π/2)`):
+/// `(−cos e·sin ρ, cos e·cos ρ, sin e)`; rotation 0 puts the sun towards +Y.
+pub fn blender_sun_direction(elevation_rad: f64, rotation_rad: f64) -> DVec3 {
+    let (se, ce) = elevation_rad.sin_cos();
+    let (sr, cr) = rotation_rad.sin_cos();
+    DVec3::new(-ce * sr, ce * cr, se)
+}
+
 /// The report of a sky render.
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
 pub struct SkyReport {

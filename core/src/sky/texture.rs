@@ -686,6 +686,41 @@ mod tests {
     }
 
     #[test]
+    fn klassen_texture_matches_direct_evaluation() {
+        use crate::sky::klassen::{KlassenParams, KlassenSky, KlassenWorld};
+        let world = KlassenWorld {
+            sky: KlassenSky::new(KlassenParams::default()).unwrap_or_else(|e| panic!("{e:?}")),
+            sun: crate::sky::blender_sun_direction(25f64.to_radians(), 0.4),
+            sun_diameter_rad: 0.545f64.to_radians(),
+        };
+        let tol = 1e-3;
+        let t = build_world_texture(
+            &world,
+            &TextureSettings {
+                width: 128,
+                tolerance: tol,
+                sun_disc: false,
+            },
+        );
+        let mut worst = 0.0f64;
+        for j in (0..t.height / 2).step_by(3) {
+            for i in (0..t.width).step_by(3) {
+                let d = equirect_direction(i as f64 + 0.5, j as f64 + 0.5, t.width, t.height);
+                let exact = spectrum::spectrum_to_rec709(&world.sky_radiance(d, 1e-8).0);
+                let y = luminance(&exact);
+                for k in 0..3 {
+                    worst = worst.max((f64::from(t.rgb[j * t.width + i][k]) - exact[k]).abs() / y);
+                }
+            }
+        }
+        eprintln!(
+            "klassen: worst pixel {worst:.3e}, reported {:.3e}, {} evaluations",
+            t.interpolation_error, t.evaluations
+        );
+        assert!(worst <= 2.0 * tol, "worst pixel error {worst:.3e}");
+    }
+
+    #[test]
     fn cost_grows_far_below_the_pixel_count() {
         let toy = Toy {
             sun: DVec3::new(0.0, 1.0, 0.1).normalize(),
