@@ -33,6 +33,8 @@ pub struct CameraRays {
     pub clip_start: f64,
     /// Where rays end, m (∞ allowed).
     pub clip_end: f64,
+    inv_width: f64,
+    inv_height: f64,
     kind: Kind,
 }
 
@@ -89,6 +91,8 @@ impl CameraRays {
                     position,
                     clip_start: c.clip_start_m,
                     clip_end: c.clip_end_m.unwrap_or(f64::INFINITY),
+                    inv_width: 1.0 / w,
+                    inv_height: 1.0 / h,
                     kind: Kind::Perspective { basis, plane, shift },
                 }
             }
@@ -98,6 +102,8 @@ impl CameraRays {
                 position: DVec3::from(c.position),
                 clip_start: 0.0,
                 clip_end: c.clip_end_m.unwrap_or(f64::INFINITY),
+                inv_width: 1.0 / f64::from(c.resolution[0]),
+                inv_height: 1.0 / f64::from(c.resolution[1]),
                 kind: Kind::Equirectangular,
             },
         }
@@ -109,14 +115,14 @@ impl CameraRays {
     pub fn direction(&self, x: f64, y: f64) -> DVec3 {
         match &self.kind {
             Kind::Perspective { basis, plane, shift } => {
-                let u = x / self.width as f64 - 0.5;
-                let v = 0.5 - y / self.height as f64;
+                let u = x * self.inv_width - 0.5;
+                let v = 0.5 - y * self.inv_height;
                 let local = DVec3::new(u * plane.0 + shift.0, v * plane.1 + shift.1, -1.0);
                 (*basis * local).normalize()
             }
             Kind::Equirectangular => {
-                let theta = PI * y / self.height as f64;
-                let phi = PI - 2.0 * PI * x / self.width as f64;
+                let theta = PI * y * self.inv_height;
+                let phi = PI - 2.0 * PI * x * self.inv_width;
                 let (st, ct) = theta.sin_cos();
                 let (sp, cp) = phi.sin_cos();
                 DVec3::new(st * cp, st * sp, ct)

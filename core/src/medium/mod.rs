@@ -44,6 +44,9 @@ impl<const C: usize> SunSource<C> {
     #[inline]
     pub fn phase(&self, p: &phase::PhaseFunction, view_dir: DVec3) -> f64 {
         let mu = view_dir.dot(self.to_sun);
+        if self.disc.is_empty() {
+            return p.eval(mu);
+        }
         match self.disc.iter().find(|d| d.phase == *p) {
             Some(d) => d.eval(mu),
             None => p.eval(mu),
