@@ -663,33 +663,52 @@ fn integrate_media<const C: usize>(
     let mut value = [0.0; C];
     let mut error = [0.0; C];
     let mut converged = true;
-    // Each piece gets an equal share of the absolute budget, fixed from a first coarse pass.
+    // The tolerance is relative to the whole integral: a first coarse G7-K15
+    // pass over every piece estimates its size, and each piece (the infinite
+    // tail counts as one) then gets an equal share of the absolute budget, so a
+    // negligible piece is not refined to relative accuracy of its own.
+    let tail = !ray.s_max.is_finite();
+    let (tail_a, tail_scale) = {
+        let a = *cuts.last().unwrap_or(&0.0);
+        let (tau1, tau0) = (total_tau(a + 1.0), total_tau(a));
+        let rate = (0..C).map(|c| tau1[c] - tau0[c]).fold(0.0_f64, f64::max).max(1e-12);
+        (a, 1.0 / rate)
+    };
+    let tail_integrand = |u: f64| {
+        let s = tail_a + tail_scale * u / (1.0 - u);
+        let jac = tail_scale / ((1.0 - u) * (1.0 - u));
+        integrand(s).map(|v| v * jac)
+    };
+    let mut coarse = [0.0f64; C];
     for w in cuts.windows(2) {
-        let r = integrate_adaptive(integrand, w[0], w[1], 1e-300, tolerance, 400);
+        let r = integrate_adaptive(integrand, w[0], w[1], f64::INFINITY, 0.0, 1);
+        for c in 0..C {
+            coarse[c] += r.value[c].abs();
+        }
+    }
+    if tail {
+        let r = integrate_adaptive(tail_integrand, 0.0, 1.0, f64::INFINITY, 0.0, 1);
+        for c in 0..C {
+            coarse[c] += r.value[c].abs();
+        }
+    }
+    let pieces = (cuts.len().saturating_sub(1) + tail as usize).max(1) as f64;
+    let smallest = coarse.iter().copied().filter(|v| *v > 0.0).fold(f64::INFINITY, f64::min);
+    let abs_tol = if smallest.is_finite() {
+        tolerance * smallest / pieces
+    } else {
+        1e-300
+    };
+    for w in cuts.windows(2) {
+        let r = integrate_adaptive(integrand, w[0], w[1], abs_tol, tolerance, 400);
         converged &= r.converged;
         for c in 0..C {
             value[c] += r.value[c];
             error[c] += r.error[c];
         }
     }
-    if !ray.s_max.is_finite() {
-        let a = *cuts.last().unwrap_or(&0.0);
-        let tau1 = total_tau(a + 1.0);
-        let tau0 = total_tau(a);
-        let rate = (0..C).map(|c| tau1[c] - tau0[c]).fold(0.0_f64, f64::max).max(1e-12);
-        let scale = 1.0 / rate;
-        let r = integrate_adaptive(
-            |u: f64| {
-                let s = a + scale * u / (1.0 - u);
-                let jac = scale / ((1.0 - u) * (1.0 - u));
-                integrand(s).map(|v| v * jac)
-            },
-            0.0,
-            1.0,
-            1e-300,
-            tolerance,
-            400,
-        );
+    if tail {
+        let r = integrate_adaptive(tail_integrand, 0.0, 1.0, abs_tol, tolerance, 400);
         converged &= r.converged;
         for c in 0..C {
             value[c] += r.value[c];
