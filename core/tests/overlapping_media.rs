@@ -4,6 +4,8 @@
 //! the volume rendering equation in `common`, and its error estimate against
 //! the true error.
 
+#![allow(clippy::needless_range_loop)]
+
 mod common;
 
 use common::{RayModel, Tail, integrate_vre, sv};
