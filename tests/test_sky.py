@@ -13,10 +13,11 @@ import tyndall
 
 
 def blender_sun_direction(elevation_deg: float, rotation_deg: float) -> np.ndarray:
-    """Cycles' Nishita sky: spherical_to_direction(elevation − π/2, rotation − π/2)
-    = (−cos e·sin ρ, cos e·cos ρ, sin e), restated independently of the core."""
+    """Where Blender 5.0.1's Sky Texture puts the sun, as measured by rendering it and an
+    Environment Texture with the same panoramic camera (scripts/compare_blender_sky.py):
+    (cos e·sin ρ, cos e·cos ρ, sin e), restated independently of the core."""
     e, r = math.radians(elevation_deg), math.radians(rotation_deg)
-    return np.array([-math.cos(e) * math.sin(r), math.cos(e) * math.cos(r), math.sin(e)])
+    return np.array([math.cos(e) * math.sin(r), math.cos(e) * math.cos(r), math.sin(e)])
 
 
 def test_sky_texture_shape_colour_and_sun_lamp() -> None:

@@ -90,7 +90,7 @@ enum Command {
         #[arg(long, allow_hyphen_values = true)]
         sun_elevation: f64,
         /// Sun direction as Blender's Sky Texture "Sun Rotation", degrees (0: sun towards +Y,
-        /// increasing counter-clockwise seen from above).
+        /// increasing towards +X, clockwise seen from above).
         #[arg(long, default_value_t = 0.0, allow_hyphen_values = true)]
         sun_azimuth: f64,
         /// Sky model.

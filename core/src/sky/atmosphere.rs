@@ -76,21 +76,19 @@
 //! `sun_size_rad` and `sun_intensity` describe the disc (as in Blender,
 //! `sun_intensity` scales the direct sun only, not the sky).
 //!
-//! **Sun direction.** +Z is up at the observer. Blender/Cycles builds the sun
-//! direction in `intern/cycles/kernel/svm/sky.h` (`sky_radiance_nishita`) as
-//! `spherical_to_direction(sun_elevation − π/2, sun_rotation − π/2)` with
-//! `spherical_to_direction(θ, φ) = (sin θ cos φ, sin θ sin φ, cos θ)`
-//! (Cycles' `util/` headers); older Cycles wrote the same vector as
-//! `geographical_to_direction(sun_elevation, sun_rotation + π/2)` with
-//! `(cos lat cos lon, cos lat sin lon, sin lat)`. Both give
+//! **Sun direction.** +Z is up at the observer. Measured with bpy 5.0.1
+//! (`scripts/compare_blender_sky.py`): Blender's Sky Texture with Sun
+//! Rotation ρ shows the sun where an Environment Texture shows the direction
 //!
 //! ```text
-//! s = (−cos e · sin ρ,  cos e · cos ρ,  sin e)      e = elevation, ρ = rotation
+//! s = (cos e · sin ρ,  cos e · cos ρ,  sin e)      e = elevation, ρ = rotation
 //! ```
 //!
-//! so rotation 0 puts the sun toward **+Y**, and increasing rotation turns it
-//! counter-clockwise seen from above (+Y → −X at ρ = π/2). We use exactly this
-//! ([`AtmosphereParams::sun_direction`]).
+//! so rotation 0 puts the sun toward **+Y** and increasing rotation turns it
+//! toward +X (clockwise seen from above). Cycles' kernel writes
+//! `spherical_to_direction(sun_elevation − π/2, sun_rotation − π/2)`, which read
+//! literally is the mirror image (−cos e·sin ρ in x); the rendered images are
+//! the authority here ([`AtmosphereParams::sun_direction`]).
 //!
 //! # Geometry (f64, cancellation-free)
 //!
@@ -780,11 +778,11 @@ impl AtmosphereParams {
     }
 
     /// Unit vector toward the sun's centre, +Z up at the observer:
-    /// `(−cos e sin ρ, cos e cos ρ, sin e)` (Blender's convention, see the module docs).
+    /// `(cos e sin ρ, cos e cos ρ, sin e)` (Blender's convention, measured; see the module docs).
     pub fn sun_direction(&self) -> DVec3 {
         let (se, ce) = self.sun_elevation_rad.sin_cos();
         let (sr, cr) = self.sun_rotation_rad.sin_cos();
-        DVec3::new(-ce * sr, ce * cr, se)
+        DVec3::new(ce * sr, ce * cr, se)
     }
 
     /// Dip of the geometric horizon below the horizontal at the observer's
@@ -1269,9 +1267,10 @@ mod tests {
     }
 
     fn ref_sun_dir(p: &AtmosphereParams) -> DVec3 {
-        // Cycles: spherical_to_direction(elevation − π/2, rotation − π/2).
+        // Blender as rendered (bpy 5.0.1): Cycles' spherical_to_direction(e − π/2, ρ − π/2)
+        // mirrored in x, i.e. azimuth ρ clockwise from +Y.
         let (th, ph) = (p.sun_elevation_rad - FRAC_PI_2, p.sun_rotation_rad - FRAC_PI_2);
-        DVec3::new(th.sin() * ph.cos(), th.sin() * ph.sin(), th.cos())
+        DVec3::new(-th.sin() * ph.cos(), th.sin() * ph.sin(), th.cos())
     }
 
     fn blocked(p: DVec3, s: DVec3) -> bool {
@@ -2072,7 +2071,8 @@ mod tests {
             .sun_direction()
         };
         assert!((p(0.0, 0.0) - DVec3::Y).length() < 1e-15);
-        assert!((p(0.0, FRAC_PI_2) + DVec3::X).length() < 1e-15);
+        // Rotation 90° puts Blender's sun towards +X (measured with bpy 5.0.1).
+        assert!((p(0.0, FRAC_PI_2) - DVec3::X).length() < 1e-15);
         assert!((p(FRAC_PI_2, 1.0) - DVec3::Z).length() < 1e-15);
         for (e, r) in [(0.3, 0.7), (-0.1, 4.0), (1.2, -2.0)] {
             let q = AtmosphereParams {

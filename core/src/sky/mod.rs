@@ -12,13 +12,14 @@ use glam::DVec3;
 use serde::{Deserialize, Serialize};
 use std::time::Instant;
 
-/// Direction towards the sun from Blender's Sky Texture angles (Cycles'
-/// `spherical_to_direction(elevation − π/2, rotation − π/2)`):
-/// `(−cos e·sin ρ, cos e·cos ρ, sin e)`; rotation 0 puts the sun towards +Y.
+/// Direction towards the sun from Blender's Sky Texture angles, as Blender
+/// renders them (measured with bpy 5.0.1, see `sky::atmosphere`):
+/// `(cos e·sin ρ, cos e·cos ρ, sin e)`; rotation 0 puts the sun towards +Y,
+/// increasing rotation turns it towards +X.
 pub fn blender_sun_direction(elevation_rad: f64, rotation_rad: f64) -> DVec3 {
     let (se, ce) = elevation_rad.sin_cos();
     let (sr, cr) = rotation_rad.sin_cos();
-    DVec3::new(-ce * sr, ce * cr, se)
+    DVec3::new(ce * sr, ce * cr, se)
 }
 
 /// The report of a sky render.
@@ -136,7 +137,7 @@ pub struct SunLamp {
     /// Angular diameter, degrees (Blender's Angle).
     pub angle_deg: f64,
     /// The same direction as Blender's Sky Texture "Sun Rotation", degrees
-    /// (0: sun towards +Y; increasing counter-clockwise seen from above).
+    /// (0: sun towards +Y; increasing towards +X, clockwise seen from above).
     pub blender_sun_rotation_deg: f64,
 }
 
@@ -167,7 +168,7 @@ impl SunLamp {
             strength_w_m2: strength,
             rgb_irradiance_w_m2: rgb,
             angle_deg: diameter_rad.to_degrees(),
-            blender_sun_rotation_deg: (-d.x).atan2(d.y).to_degrees(),
+            blender_sun_rotation_deg: d.x.atan2(d.y).to_degrees(),
         }
     }
 }
