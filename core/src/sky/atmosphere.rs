@@ -891,15 +891,28 @@ impl AtmosphereParams {
     /// does not apply (Blender's convention). Parameters are assumed valid
     /// ([`Self::validate`]).
     pub fn sky_spectral_radiance(&self, view_dir: DVec3, rel_tol: f64) -> (Spectrum, Spectrum, usize) {
-        self.single_scattering(view_dir, rel_tol, None)
+        let ([r, m], [er, em], evaluations) = self.single_scattering_parts(view_dir, rel_tol);
+        let len = view_dir.length();
+        let nu = if len > 0.0 {
+            (view_dir / len).dot(self.sun_direction()).clamp(-1.0, 1.0)
+        } else {
+            0.0
+        };
+        let (p_r, p_m) = (
+            PhaseFunction::Rayleigh.eval(nu),
+            PhaseFunction::CornetteShanks { g: MIE_G }.eval(nu),
+        );
+        let value: Spectrum = std::array::from_fn(|i| p_r * r[i] + p_m * m[i]);
+        let error: Spectrum = std::array::from_fn(|i| p_r * er[i] + p_m * em[i]);
+        (value, error, evaluations)
     }
 
-    /// The same integral with the phase functions replaced by `weights`
-    /// `(Rayleigh, Mie)` (constant along the ray for a point sun), or by the
-    /// true phase functions when `None`. With weights (1, 0) and (0, 1) it
-    /// gives the phase-free components that world textures interpolate.
-    fn single_scattering(&self, view_dir: DVec3, rel_tol: f64, weights: Option<(f64, f64)>) -> (Spectrum, Spectrum, usize) {
-        let nan = [f64::NAN; SPECTRAL_SAMPLES];
+    /// The phase-free Rayleigh and Mie parts of the single-scattering integral
+    /// (the phase functions are constant along the ray for a point sun), in one
+    /// pass: `L = p_R(ν)·parts[0] + p_M(ν)·parts[1]`. Errors per part.
+    fn single_scattering_parts(&self, view_dir: DVec3, rel_tol: f64) -> ([Spectrum; 2], [Spectrum; 2], usize) {
+        const N: usize = SPECTRAL_SAMPLES;
+        let nan = [[f64::NAN; N]; 2];
         let len = view_dir.length();
         if !(len.is_finite() && len > 0.0) {
             return (nan, nan, 0);
@@ -909,7 +922,7 @@ impl AtmosphereParams {
         let s = self.sun_direction();
         let nu = v.dot(s).clamp(-1.0, 1.0);
         let view = self.observer_ray(v.z);
-        let zero = [0.0; SPECTRAL_SAMPLES];
+        let zero = [[0.0; N]; 2];
         let Some((t_in, t_end, _)) = view.segment() else {
             return (zero, zero, 0);
         };
@@ -918,12 +931,8 @@ impl AtmosphereParams {
         }
         let res = self.resolved();
         let e0 = solar_spectral_irradiance();
-        let (p_r, p_m) = weights.unwrap_or((
-            PhaseFunction::Rayleigh.eval(nu),
-            PhaseFunction::CornetteShanks { g: MIE_G }.eval(nu),
-        ));
-        let w_r: Spectrum = std::array::from_fn(|i| e0[i] * res.scat_r[i] * p_r);
-        let w_m: Spectrum = std::array::from_fn(|i| e0[i] * res.scat_m * p_m);
+        let w_r: Spectrum = std::array::from_fn(|i| e0[i] * res.scat_r[i]);
+        let w_m: Spectrum = std::array::from_fn(|i| e0[i] * res.scat_m);
         // Each species' optical depth in each of the two columns to 0.005 tol.
         let tau_tol = 0.005 * tol;
         let o_s = view.r0 * s.z;
@@ -935,14 +944,14 @@ impl AtmosphereParams {
         breaks.sort_by(f64::total_cmp);
         breaks.dedup();
 
-        let mut dtau_max = [0.0_f64; SPECTRAL_SAMPLES];
-        let mut f = |t: f64| -> Spectrum {
+        let mut dtau_max = [0.0_f64; N];
+        let mut f = |t: f64| -> [f64; 2 * N] {
             let (h, r) = view.height_radius(t);
             let h = h.clamp(0.0, ATMOSPHERE_TOP_M);
             let mu_s = ((o_s + t * nu) / r).clamp(-1.0, 1.0);
             let sun = Ray::new(h, mu_s);
             let Some((_, t_sun, RayEnd::Top)) = sun.segment() else {
-                return [0.0; SPECTRAL_SAMPLES];
+                return [0.0; 2 * N];
             };
             let (cs, es) = columns_for_tau(&sun, 0.0, t_sun, &res.sigma_max, tau_tol);
             let (cv, ev) = columns_for_tau(&view, t_in, t, &res.sigma_max, tau_tol);
@@ -950,20 +959,27 @@ impl AtmosphereParams {
             let de = [es[0] + ev[0], es[1] + ev[1], es[2] + ev[2]];
             let rho_r = rayleigh_density(h);
             let rho_m = mie_density(h);
-            let mut out = [0.0; SPECTRAL_SAMPLES];
-            for i in 0..SPECTRAL_SAMPLES {
+            let mut out = [0.0; 2 * N];
+            for i in 0..N {
                 let tau = res.sigma[0][i] * d[0] + res.sigma[1][i] * d[1] + res.sigma[2][i] * d[2];
                 let dtau = res.sigma[0][i] * de[0] + res.sigma[1][i] * de[1] + res.sigma[2][i] * de[2];
                 dtau_max[i] = dtau_max[i].max(dtau);
-                out[i] = (-tau).exp() * (w_r[i] * rho_r + w_m[i] * rho_m);
+                let t = (-tau).exp();
+                out[i] = t * w_r[i] * rho_r;
+                out[N + i] = t * w_m[i] * rho_m;
             }
             out
         };
-        let (value, mut error, evaluations) = integrate_pieces(&mut f, &breaks, 0.0, tol, 1e-2, 2000);
-        for i in 0..SPECTRAL_SAMPLES {
-            error[i] += value[i].abs() * (dtau_max[i] + 64.0 * f64::EPSILON);
+        let (value, error, evaluations) = integrate_pieces(&mut f, &breaks, 0.0, tol, 1e-2, 2000);
+        let mut parts = [[0.0; N]; 2];
+        let mut errors = [[0.0; N]; 2];
+        for k in 0..2 {
+            for i in 0..N {
+                parts[k][i] = value[k * N + i];
+                errors[k][i] = error[k * N + i] + value[k * N + i].abs() * (dtau_max[i] + 64.0 * f64::EPSILON);
+            }
         }
-        (value, error, evaluations)
+        (parts, errors, evaluations)
     }
 
     /// Mean single-scattered spectral radiance over all directions at the
@@ -1125,12 +1141,19 @@ impl crate::sky::texture::SkyModel for AtmosphereParams {
     }
 
     fn sky_components(&self, view_dir: DVec3, rel_tol: f64) -> (Vec<(Option<PhaseFunction>, Spectrum)>, Spectrum) {
-        let (r, er, _) = self.single_scattering(view_dir, rel_tol, Some((1.0, 0.0)));
-        let (m, em, _) = self.single_scattering(view_dir, rel_tol, Some((0.0, 1.0)));
-        // Error of p_R·S_R + p_M·S_M ≤ p_R·e_R + p_M·e_M ≤ max p · (e_R + e_M); the
-        // largest phase values are 3/(8π) (Rayleigh) and p_CS(1) (Mie).
-        let p_max = (3.0 / (8.0 * std::f64::consts::PI)).max(PhaseFunction::CornetteShanks { g: MIE_G }.eval(1.0));
-        let err: Spectrum = std::array::from_fn(|i| p_max * (er[i] + em[i]));
+        let ([r, m], [er, em], _) = self.single_scattering_parts(view_dir, rel_tol);
+        // Error of p_R·S_R + p_M·S_M at this direction (the phases are exact).
+        let len = view_dir.length();
+        let nu = if len > 0.0 {
+            (view_dir / len).dot(self.sun_direction()).clamp(-1.0, 1.0)
+        } else {
+            0.0
+        };
+        let (p_r, p_m) = (
+            PhaseFunction::Rayleigh.eval(nu),
+            PhaseFunction::CornetteShanks { g: MIE_G }.eval(nu),
+        );
+        let err: Spectrum = std::array::from_fn(|i| p_r * er[i] + p_m * em[i]);
         (
             vec![
                 (Some(PhaseFunction::Rayleigh), r),
