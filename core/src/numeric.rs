@@ -84,8 +84,8 @@ pub struct Integral<const N: usize> {
     pub converged: bool,
 }
 
-// Gauss–Kronrod (7, 15) nodes and weights on [-1, 1] (QUADPACK's qk15 table).
-const XGK: [f64; 8] = [
+/// Gauss–Kronrod (7, 15) abscissae on [-1, 1] (QUADPACK's qk15 table), shared by the crate's integrators.
+pub(crate) const XGK: [f64; 8] = [
     0.991_455_371_120_812_6,
     0.949_107_912_342_758_5,
     0.864_864_423_359_769_1,
@@ -95,7 +95,8 @@ const XGK: [f64; 8] = [
     0.207_784_955_007_898_5,
     0.0,
 ];
-const WGK: [f64; 8] = [
+/// Kronrod weights of [`XGK`].
+pub(crate) const WGK: [f64; 8] = [
     0.022_935_322_010_529_22,
     0.063_092_092_629_978_55,
     0.104_790_010_322_250_2,
@@ -105,7 +106,8 @@ const WGK: [f64; 8] = [
     0.204_432_940_075_298_9,
     0.209_482_141_084_728,
 ];
-const WG: [f64; 4] = [
+/// Gauss (7-point) weights, for the odd-indexed entries of [`XGK`].
+pub(crate) const WG: [f64; 4] = [
     0.129_484_966_168_869_7,
     0.279_705_391_489_276_7,
     0.381_830_050_505_118_9,

@@ -892,19 +892,25 @@ impl AtmosphereParams {
     /// ([`Self::validate`]).
     pub fn sky_spectral_radiance(&self, view_dir: DVec3, rel_tol: f64) -> (Spectrum, Spectrum, usize) {
         let ([r, m], [er, em], evaluations) = self.single_scattering_parts(view_dir, rel_tol);
+        let (p_r, p_m) = self.phases(view_dir);
+        let value: Spectrum = std::array::from_fn(|i| p_r * r[i] + p_m * m[i]);
+        let error: Spectrum = std::array::from_fn(|i| p_r * er[i] + p_m * em[i]);
+        (value, error, evaluations)
+    }
+
+    /// Rayleigh and Mie phase function values for light from the sun's centre
+    /// scattered towards the observer along `view_dir` (a zero vector gives ν = 0).
+    fn phases(&self, view_dir: DVec3) -> (f64, f64) {
         let len = view_dir.length();
         let nu = if len > 0.0 {
             (view_dir / len).dot(self.sun_direction()).clamp(-1.0, 1.0)
         } else {
             0.0
         };
-        let (p_r, p_m) = (
+        (
             PhaseFunction::Rayleigh.eval(nu),
             PhaseFunction::CornetteShanks { g: MIE_G }.eval(nu),
-        );
-        let value: Spectrum = std::array::from_fn(|i| p_r * r[i] + p_m * m[i]);
-        let error: Spectrum = std::array::from_fn(|i| p_r * er[i] + p_m * em[i]);
-        (value, error, evaluations)
+        )
     }
 
     /// The phase-free Rayleigh and Mie parts of the single-scattering integral
@@ -1143,16 +1149,7 @@ impl crate::sky::texture::SkyModel for AtmosphereParams {
     fn sky_components(&self, view_dir: DVec3, rel_tol: f64) -> (Vec<(Option<PhaseFunction>, Spectrum)>, Spectrum) {
         let ([r, m], [er, em], _) = self.single_scattering_parts(view_dir, rel_tol);
         // Error of p_R·S_R + p_M·S_M at this direction (the phases are exact).
-        let len = view_dir.length();
-        let nu = if len > 0.0 {
-            (view_dir / len).dot(self.sun_direction()).clamp(-1.0, 1.0)
-        } else {
-            0.0
-        };
-        let (p_r, p_m) = (
-            PhaseFunction::Rayleigh.eval(nu),
-            PhaseFunction::CornetteShanks { g: MIE_G }.eval(nu),
-        );
+        let (p_r, p_m) = self.phases(view_dir);
         let err: Spectrum = std::array::from_fn(|i| p_r * er[i] + p_m * em[i]);
         (
             vec![

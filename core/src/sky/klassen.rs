@@ -1291,34 +1291,8 @@ impl KlassenSky {
     }
 }
 
-// Gauss–Kronrod (7, 15) nodes and weights on [−1, 1] (QUADPACK qk15, as in
-// `crate::numeric`, whose table is private).
-const XGK: [f64; 8] = [
-    0.991_455_371_120_812_6,
-    0.949_107_912_342_758_5,
-    0.864_864_423_359_769_1,
-    0.741_531_185_599_394_4,
-    0.586_087_235_467_691_1,
-    0.405_845_151_377_397_2,
-    0.207_784_955_007_898_5,
-    0.0,
-];
-const WGK: [f64; 8] = [
-    0.022_935_322_010_529_22,
-    0.063_092_092_629_978_55,
-    0.104_790_010_322_250_2,
-    0.140_653_259_715_525_9,
-    0.169_004_726_639_267_9,
-    0.190_350_578_064_785_4,
-    0.204_432_940_075_298_9,
-    0.209_482_141_084_728,
-];
-const WG: [f64; 4] = [
-    0.129_484_966_168_869_7,
-    0.279_705_391_489_276_7,
-    0.381_830_050_505_118_9,
-    0.417_959_183_673_469_4,
-];
+// Gauss–Kronrod (7, 15) nodes and weights: the crate's one table.
+use crate::numeric::{WG, WGK, XGK};
 
 /// One G7–K15 panel on `[a, b]` of piece `pi`: (Kronrod value, |Kronrod − Gauss|).
 fn gk15(f: &mut impl FnMut(usize, f64) -> Spectrum, pi: usize, a: f64, b: f64) -> (Spectrum, Spectrum) {
