@@ -657,6 +657,35 @@ mod tests {
         );
     }
 
+    /// Largest error, relative to luminance, of a 128-px texture at every 3rd
+    /// pixel of the upper hemisphere against the model evaluated directly to 1e-8.
+    fn worst_pixel_error(model: &dyn SkyModel, tol: f64, label: &str) -> f64 {
+        let t = build_world_texture(
+            model,
+            &TextureSettings {
+                width: 128,
+                tolerance: tol,
+                sun_disc: false,
+            },
+        );
+        let mut worst = 0.0f64;
+        for j in (0..t.height / 2).step_by(3) {
+            for i in (0..t.width).step_by(3) {
+                let d = equirect_direction(i as f64 + 0.5, j as f64 + 0.5, t.width, t.height);
+                let exact = spectrum::spectrum_to_rec709(&model.sky_radiance(d, 1e-8).0);
+                let y = luminance(&exact);
+                for k in 0..3 {
+                    worst = worst.max((f64::from(t.rgb[j * t.width + i][k]) - exact[k]).abs() / y);
+                }
+            }
+        }
+        eprintln!(
+            "{label}: worst pixel {worst:.3e}, reported {:.3e}, {} evaluations",
+            t.interpolation_error, t.evaluations
+        );
+        worst
+    }
+
     #[test]
     fn atmosphere_texture_matches_direct_evaluation() {
         use crate::sky::atmosphere::AtmosphereParams;
@@ -666,32 +695,8 @@ mod tests {
                 sun_rotation_rad: 0.7,
                 ..Default::default()
             };
-            let tol = 1e-3;
-            let t = build_world_texture(
-                &atm,
-                &TextureSettings {
-                    width: 128,
-                    tolerance: tol,
-                    sun_disc: false,
-                },
-            );
-            let mut worst = 0.0f64;
-            // Every 3rd pixel of the upper hemisphere against the model itself.
-            for j in (0..t.height / 2).step_by(3) {
-                for i in (0..t.width).step_by(3) {
-                    let d = equirect_direction(i as f64 + 0.5, j as f64 + 0.5, t.width, t.height);
-                    let exact = spectrum::spectrum_to_rec709(&atm.sky_spectral_radiance(d, 1e-7).0);
-                    let y = luminance(&exact);
-                    for k in 0..3 {
-                        worst = worst.max((f64::from(t.rgb[j * t.width + i][k]) - exact[k]).abs() / y);
-                    }
-                }
-            }
-            eprintln!(
-                "atmosphere, sun {elevation}°: worst pixel {worst:.3e}, reported {:.3e}, {} evaluations",
-                t.interpolation_error, t.evaluations
-            );
-            assert!(worst <= 2.0 * tol, "sun {elevation}°: worst pixel error {worst:.3e}");
+            let worst = worst_pixel_error(&atm, 1e-3, &format!("atmosphere, sun {elevation}°"));
+            assert!(worst <= 2e-3, "sun {elevation}°: worst pixel error {worst:.3e}");
         }
     }
 
@@ -703,31 +708,8 @@ mod tests {
             sun: crate::sky::blender_sun_direction(25f64.to_radians(), 0.4),
             sun_diameter_rad: 0.545f64.to_radians(),
         };
-        let tol = 1e-3;
-        let t = build_world_texture(
-            &world,
-            &TextureSettings {
-                width: 128,
-                tolerance: tol,
-                sun_disc: false,
-            },
-        );
-        let mut worst = 0.0f64;
-        for j in (0..t.height / 2).step_by(3) {
-            for i in (0..t.width).step_by(3) {
-                let d = equirect_direction(i as f64 + 0.5, j as f64 + 0.5, t.width, t.height);
-                let exact = spectrum::spectrum_to_rec709(&world.sky_radiance(d, 1e-8).0);
-                let y = luminance(&exact);
-                for k in 0..3 {
-                    worst = worst.max((f64::from(t.rgb[j * t.width + i][k]) - exact[k]).abs() / y);
-                }
-            }
-        }
-        eprintln!(
-            "klassen: worst pixel {worst:.3e}, reported {:.3e}, {} evaluations",
-            t.interpolation_error, t.evaluations
-        );
-        assert!(worst <= 2.0 * tol, "worst pixel error {worst:.3e}");
+        let worst = worst_pixel_error(&world, 1e-3, "klassen");
+        assert!(worst <= 2e-3, "worst pixel error {worst:.3e}");
     }
 
     #[test]
