@@ -55,15 +55,8 @@ enum Command {
     Render {
         /// Scene file (JSON, see docs/scene-format.md).
         scene: PathBuf,
-        /// Output EXR file.
-        #[arg(long)]
-        out: PathBuf,
-        /// Report file (JSON). Default: OUT with extension .report.json.
-        #[arg(long)]
-        report: Option<PathBuf>,
-        /// Tone-mapped PNG preview of the in-scatter over grey surfaces.
-        #[arg(long)]
-        preview: Option<PathBuf>,
+        #[command(flatten)]
+        files: OutputFiles,
         /// Relative tolerance for numerically integrated pixels (overrides output.tolerance).
         #[arg(long)]
         tolerance: Option<f64>,
@@ -126,15 +119,8 @@ enum Command {
         /// Leave the sun disc out of the texture (use the sun lamp).
         #[arg(long)]
         no_sun_disc: bool,
-        /// Output EXR.
-        #[arg(long)]
-        out: PathBuf,
-        /// Report JSON. Default: OUT with extension .report.json.
-        #[arg(long)]
-        report: Option<PathBuf>,
-        /// Tone-mapped PNG preview.
-        #[arg(long)]
-        preview: Option<PathBuf>,
+        #[command(flatten)]
+        files: OutputFiles,
     },
     /// Print the JSON Schema of the scene format.
     Schema,
@@ -153,6 +139,26 @@ enum Command {
         #[arg(long, default_value_t = 0)]
         threads: usize,
     },
+}
+
+/// The files a rendering command writes.
+#[derive(clap::Args, Debug)]
+struct OutputFiles {
+    /// Output EXR file.
+    #[arg(long)]
+    out: PathBuf,
+    /// Report file (JSON). Default: OUT with extension .report.json.
+    #[arg(long)]
+    report: Option<PathBuf>,
+    /// Tone-mapped PNG preview.
+    #[arg(long)]
+    preview: Option<PathBuf>,
+}
+
+impl OutputFiles {
+    fn report_path(&self) -> PathBuf {
+        self.report.clone().unwrap_or_else(|| self.out.with_extension("report.json"))
+    }
 }
 
 /// Sky models the `sky` command offers.
@@ -196,9 +202,7 @@ fn execute(cmd: Command) -> Result<(), CliError> {
     match cmd {
         Command::Render {
             scene,
-            out,
-            report,
-            preview,
+            files,
             tolerance,
             threads,
             quiet,
@@ -210,9 +214,8 @@ fn execute(cmd: Command) -> Result<(), CliError> {
             if let Some(n) = threads {
                 s.output.threads = n;
             }
-            let report_path = report.unwrap_or_else(|| out.with_extension("report.json"));
-            let r = render_to_files(&s, &out, Some(&report_path), preview.as_deref(), !quiet)?;
-            println!("{}", summary(&r, &out));
+            let r = render_to_files(&s, &files.out, Some(&files.report_path()), files.preview.as_deref(), !quiet)?;
+            println!("{}", summary(&r, &files.out));
             Ok(())
         }
         Command::Demo { out_dir, quiet } => {
@@ -276,9 +279,7 @@ fn execute(cmd: Command) -> Result<(), CliError> {
             width,
             tolerance,
             no_sun_disc,
-            out,
-            report,
-            preview,
+            files,
         } => {
             let sky = match model {
                 SkyModelName::Atmosphere => SkyChoice::Atmosphere(tyndall_core::sky::atmosphere::AtmosphereParams {
@@ -308,8 +309,8 @@ fn execute(cmd: Command) -> Result<(), CliError> {
                 tolerance,
                 sun_disc: !no_sun_disc,
             };
-            let report_path = report.unwrap_or_else(|| out.with_extension("report.json"));
-            let r = sky_to_files(&sky, &settings, &out, Some(&report_path), preview.as_deref())?;
+            let r = sky_to_files(&sky, &settings, &files.out, Some(&files.report_path()), files.preview.as_deref())?;
+            let out = &files.out;
             println!(
                 "{}: {}x{} sky in {:.3} s; {} evaluations, interpolation error {:.2e} (tolerance {:.1e}); sun lamp strength {:.3} W/m², colour {:?}",
                 out.display(),

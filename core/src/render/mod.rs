@@ -1132,7 +1132,7 @@ impl RowStats {
 }
 
 /// One view-ray sample reduced to RGB.
-#[derive(Debug, Clone, Copy)]
+#[derive(Debug, Clone, Copy, Default)]
 struct Sample {
     l: [f64; 3],
     t: [f64; 3],
@@ -1182,11 +1182,8 @@ fn filter_pixel(
 ) -> (Sample, [f64; 3], usize) {
     let estimate = |n: usize| -> Sample {
         let nodes = filter.nodes(n);
-        let mut acc = sample(x, y);
-        acc.l = [0.0; 3];
-        acc.t = [0.0; 3];
-        acc.st = [0.0; 3];
-        acc.e = [0.0; 3];
+        // Accumulator only: depth, hit and surface are the caller's (centre sample).
+        let mut acc = Sample::default();
         for &(dy, wy) in &nodes {
             for &(dx, wx) in &nodes {
                 let s = sample(x + dx, y + dy);
