@@ -141,6 +141,15 @@ enum Command {
     },
 }
 
+/// `println!` that ignores a closed stdout (`tyndall demo | head -1`): a
+/// broken pipe is not an error of the render and must not panic.
+macro_rules! say {
+    ($($arg:tt)*) => {{
+        use std::io::Write as _;
+        let _ = writeln!(std::io::stdout(), $($arg)*);
+    }};
+}
+
 /// The files a rendering command writes.
 #[derive(clap::Args, Debug)]
 struct OutputFiles {
@@ -215,7 +224,7 @@ fn execute(cmd: Command) -> Result<(), CliError> {
                 s.output.threads = n;
             }
             let r = render_to_files(&s, &files.out, Some(&files.report_path()), files.preview.as_deref(), !quiet)?;
-            println!("{}", summary(&r, &files.out));
+            say!("{}", summary(&r, &files.out));
             Ok(())
         }
         Command::Demo { out_dir, quiet } => {
@@ -233,7 +242,7 @@ fn execute(cmd: Command) -> Result<(), CliError> {
                     Some(&out_dir.join(format!("{stem}.png"))),
                     !quiet,
                 )?;
-                println!("{}", summary(&r, &exr));
+                say!("{}", summary(&r, &exr));
             }
             // And a sky: the layered atmosphere with a low afternoon sun, as a world texture.
             let sky = SkyChoice::Atmosphere(tyndall_core::sky::atmosphere::AtmosphereParams {
@@ -254,7 +263,7 @@ fn execute(cmd: Command) -> Result<(), CliError> {
                 Some(&out_dir.join("sky_atmosphere.report.json")),
                 Some(&out_dir.join("sky_atmosphere.png")),
             )?;
-            println!(
+            say!(
                 "{}: {}x{} sky in {:.3} s; interpolation error {:.2e}; sun lamp strength {:.1} W/m²",
                 sky_exr.display(),
                 r.resolution[0],
@@ -311,7 +320,7 @@ fn execute(cmd: Command) -> Result<(), CliError> {
             };
             let r = sky_to_files(&sky, &settings, &files.out, Some(&files.report_path()), files.preview.as_deref())?;
             let out = &files.out;
-            println!(
+            say!(
                 "{}: {}x{} sky in {:.3} s; {} evaluations, interpolation error {:.2e} (tolerance {:.1e}); sun lamp strength {:.3} W/m², colour {:?}",
                 out.display(),
                 r.resolution[0],
@@ -329,7 +338,7 @@ fn execute(cmd: Command) -> Result<(), CliError> {
             Ok(())
         }
         Command::Schema => {
-            println!("{}", tyndall_core::scene::json_schema());
+            say!("{}", tyndall_core::scene::json_schema());
             Ok(())
         }
         Command::Bench {
@@ -368,7 +377,7 @@ fn execute(cmd: Command) -> Result<(), CliError> {
                 }
                 times.sort_by(f64::total_cmp);
                 let mpix = (width as f64 * height as f64) / 1e6;
-                println!(
+                say!(
                     "{label}: {width}x{height}, best {:.1} ms ({:.1} Mpixel/s), median {:.1} ms ({:.1} Mpixel/s), {} threads",
                     times[0] * 1e3,
                     mpix / times[0],
@@ -380,7 +389,7 @@ fn execute(cmd: Command) -> Result<(), CliError> {
                         threads
                     }
                 );
-                println!("  best run: {stages}");
+                say!("  best run: {stages}");
             }
             Ok(())
         }
