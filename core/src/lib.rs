@@ -17,6 +17,7 @@
 pub mod bench_scenes;
 pub mod geometry;
 pub mod io;
+pub mod light;
 pub mod medium;
 pub mod numeric;
 pub mod render;

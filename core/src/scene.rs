@@ -61,7 +61,21 @@ macro_rules! tagged_enum_deserialize {
 }
 
 tagged_enum_deserialize!(Camera, "camera", { "perspective" => Perspective(PerspectiveCamera), "equirectangular" => Equirectangular(EquirectangularCamera) });
-tagged_enum_deserialize!(Light, "light", { "sun" => Sun(SunLight), "ambient" => Ambient(AmbientLight) });
+tagged_enum_deserialize!(Light, "light", {
+    "sun" => Sun(SunLight),
+    "ambient" => Ambient(AmbientLight),
+    "point" => Point(PointLight),
+    "spot" => Spot(SpotLight),
+    "window" => Window(WindowLight),
+});
+tagged_enum_deserialize!(IntensityDistribution, "intensity distribution", {
+    "isotropic" => Isotropic(IsotropicDistribution),
+    "nishita_spot" => NishitaSpot(NishitaSpotDistribution),
+    "usd_shaping" => UsdShaping(UsdShapingDistribution),
+    "daisy" => Daisy(DaisyDistribution),
+    "polka_dot" => PolkaDot(PolkaDotDistribution),
+    "tabulated" => Tabulated(TabulatedDistribution),
+});
 tagged_enum_deserialize!(Medium, "medium", {
     "homogeneous" => Homogeneous(HomogeneousMedium),
     "height_fog" => HeightFog(HeightFogMedium),
@@ -261,9 +275,7 @@ pub enum LightSpectrum {
     Solar,
 }
 
-/// A light. JSON: `{"type": "sun", ...}` or `{"type": "ambient", ...}`.
-/// Point and spot lights with intensity distributions are reserved for a later
-/// format revision (the `type` tag leaves room for them).
+/// A light. JSON: `{"type": "sun" | "ambient" | "point" | "spot" | "window", ...}`.
 #[derive(Debug, Clone, PartialEq, Serialize, JsonSchema)]
 #[serde(tag = "type", rename_all = "snake_case")]
 pub enum Light {
@@ -273,6 +285,244 @@ pub enum Light {
     /// Uniform incident radiance from every direction (sky/fill), scattered
     /// isotropically (Ishiyama eq 11).
     Ambient(AmbientLight),
+
+    /// A point light (Blender's Point lamp) with an optional intensity
+    /// distribution I(θ, φ) and IES profile (Nishita eqs 7–10, appendix).
+    Point(PointLight),
+
+    /// Blender's Spot lamp: a point light masked by Cycles' spot cone
+    /// (`spot_size_deg`, `spot_blend`), optionally with an IES profile.
+    Spot(SpotLight),
+
+    /// Parallel light through a planar window polygon (Nishita Fig. 3): the
+    /// illumination volume is the prism the polygon sweeps along the light.
+    Window(WindowLight),
+}
+
+fn default_identity_orientation() -> Orientation {
+    Orientation::QuaternionWxyz([1.0, 0.0, 0.0, 0.0])
+}
+fn default_point_name() -> String {
+    "point".into()
+}
+fn default_spot_name() -> String {
+    "spot".into()
+}
+fn default_window_name() -> String {
+    "window".into()
+}
+fn default_light_power() -> f64 {
+    1000.0
+}
+fn default_spot_size() -> f64 {
+    45.0
+}
+fn default_spot_blend() -> f64 {
+    0.15
+}
+
+/// An IES LM-63 photometric profile attached to a point or spot light, as
+/// Blender's IES Texture node plugged into the light's emission strength.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields)]
+pub struct IesProfileRef {
+    /// Path of the `.ies` file; relative paths are relative to the scene
+    /// file's folder (the working directory for scenes given as text).
+    pub file: String,
+    /// Factor on the profile, ≥ 0, as the IES node's Strength input. Default 1.
+    #[serde(default = "default_one")]
+    pub strength: f64,
+}
+
+/// A point light. Radiant intensity towards direction ω (W·sr⁻¹ per channel):
+/// `I(ω) = color · power_w · K · D(ω) · IES(ω)`, with Cycles' convention
+/// `K = 1/(4π)` W·sr⁻¹ per W (see `docs/cycles-conventions.md`), `D` the
+/// relative `distribution` (1 on the axis) and `IES` the profile factor.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields)]
+pub struct PointLight {
+    /// Name for reports and the `inscatter.<name>` layer. Default "point".
+    #[serde(default = "default_point_name")]
+    pub name: String,
+    /// Position, m.
+    pub position: [f64; 3],
+    /// Orientation; the illumination axis is the light's local −Z and φ = 0
+    /// is its local +X (Blender). Default identity: shining straight down.
+    #[serde(default = "default_identity_orientation")]
+    pub orientation: Orientation,
+    /// Linear Rec.709 colour, each ≥ 0. Default [1,1,1].
+    #[serde(default = "default_white")]
+    pub color: [f64; 3],
+    /// Blender's Power, W, ≥ 0. Default 1000.
+    #[serde(default = "default_light_power")]
+    pub power_w: f64,
+    /// Blender's Radius, m, ≥ 0: view rays passing closer than this to the
+    /// light are evaluated as if at this distance (Tyndall treats the light
+    /// as a point). Default 0.
+    #[serde(default)]
+    pub radius_m: f64,
+    /// Relative intensity distribution. Default isotropic.
+    #[serde(default)]
+    pub distribution: IntensityDistribution,
+    /// IES profile. Default none.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub ies: Option<IesProfileRef>,
+}
+
+/// Blender's Spot lamp: a point light with Cycles' spot mask
+/// `smoothstep((cos θ − cos(size/2)) / (blend·(1 − cos(size/2))))`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields)]
+pub struct SpotLight {
+    /// Name for reports and the `inscatter.<name>` layer. Default "spot".
+    #[serde(default = "default_spot_name")]
+    pub name: String,
+    /// Position, m.
+    pub position: [f64; 3],
+    /// Orientation; the spot shines along its local −Z (Blender). Default identity: straight down.
+    #[serde(default = "default_identity_orientation")]
+    pub orientation: Orientation,
+    /// Linear Rec.709 colour, each ≥ 0. Default [1,1,1].
+    #[serde(default = "default_white")]
+    pub color: [f64; 3],
+    /// Blender's Power, W, ≥ 0. Default 1000.
+    #[serde(default = "default_light_power")]
+    pub power_w: f64,
+    /// Blender's Radius, m, ≥ 0 (see [`PointLight::radius_m`]). Default 0.
+    #[serde(default)]
+    pub radius_m: f64,
+    /// Full cone angle, degrees, 0.1..=180 (Blender's Spot Size, 1°..180°; 0.1° allowed). Default 45.
+    #[serde(default = "default_spot_size")]
+    pub spot_size_deg: f64,
+    /// Softness of the cone edge, 0..=1 (Blender's Blend). Default 0.15.
+    #[serde(default = "default_spot_blend")]
+    pub spot_blend: f64,
+    /// IES profile. Default none.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub ies: Option<IesProfileRef>,
+}
+
+/// Parallel light through a planar convex or concave polygon (a window).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields)]
+pub struct WindowLight {
+    /// Name for reports and the `inscatter.<name>` layer. Default "window".
+    #[serde(default = "default_window_name")]
+    pub name: String,
+    /// Unit-less vector from the scene towards the light source, non-zero.
+    pub direction_to_light: [f64; 3],
+    /// Linear Rec.709 colour, each ≥ 0. Default [1,1,1].
+    #[serde(default = "default_white")]
+    pub color: [f64; 3],
+    /// Irradiance on a surface facing the light, W·m⁻², ≥ 0. Default 1.
+    #[serde(default = "default_one")]
+    pub irradiance_w_m2: f64,
+    /// The window polygon's corners in order, m; ≥ 3, planar to 1e-6
+    /// relative, not parallel to the light direction.
+    pub aperture: Vec<[f64; 3]>,
+}
+
+/// Relative luminous intensity distribution of a point light, 1 on the axis
+/// (θ = 0) unless the distribution says otherwise. θ is measured from the
+/// illumination axis (local −Z), φ around it from local +X towards +Y.
+#[derive(Debug, Clone, PartialEq, Serialize, JsonSchema)]
+#[serde(tag = "type", rename_all = "snake_case")]
+pub enum IntensityDistribution {
+    /// 1 in every direction.
+    Isotropic(IsotropicDistribution),
+    /// Nishita eq 7: `(1−q)(cos θ − cos γ)/(1 − cos γ) + q` inside the beam spread γ, 0 outside.
+    NishitaSpot(NishitaSpotDistribution),
+    /// UsdLux ShapingAPI: cone angle, softness and focus.
+    UsdShaping(UsdShapingDistribution),
+    /// Nishita eq 9: eq 7 times the petal function k(φ) of eq 8.
+    Daisy(DaisyDistribution),
+    /// Nishita eq 10: eq 9 times k(θ) and the checkerboard v.
+    PolkaDot(PolkaDotDistribution),
+    /// Table of relative intensity over (θ, φ), bilinear interpolation.
+    Tabulated(TabulatedDistribution),
+}
+
+impl Default for IntensityDistribution {
+    fn default() -> Self {
+        IntensityDistribution::Isotropic(IsotropicDistribution {})
+    }
+}
+
+/// Isotropic: no fields.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields)]
+pub struct IsotropicDistribution {}
+
+/// Nishita's spotlight, eq 7.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields)]
+pub struct NishitaSpotDistribution {
+    /// Beam spread γ (half-angle of the lit cone), degrees, 0.01..=180.
+    pub beam_spread_deg: f64,
+    /// Edge sharpness q, 0..=1 (1 very sharp, 0 very soft).
+    pub sharpness: f64,
+}
+
+/// UsdLux ShapingAPI (`shaping:cone:angle`, `shaping:cone:softness`, `shaping:focus`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields)]
+pub struct UsdShapingDistribution {
+    /// Cone half-angle, degrees, 0.01..=180. Default 90 (USD: 90 = no cone).
+    #[serde(default = "default_usd_cone")]
+    pub cone_angle_deg: f64,
+    /// Cone softness, 0..=1. Default 0.
+    #[serde(default)]
+    pub cone_softness: f64,
+    /// Focus exponent, ≥ 0: the intensity is multiplied by `cos(θ)^focus`. Default 0.
+    #[serde(default)]
+    pub focus: f64,
+}
+fn default_usd_cone() -> f64 {
+    90.0
+}
+
+/// Nishita's daisy, eq 9 = eq 7 × k(φ) of eq 8.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields)]
+pub struct DaisyDistribution {
+    /// Beam spread γ, degrees, 0.01..=180.
+    pub beam_spread_deg: f64,
+    /// Edge sharpness q, 0..=1.
+    pub sharpness: f64,
+    /// Petal period Δφ, degrees, 0.1..=360.
+    pub period_phi_deg: f64,
+    /// Ratio p of minimum to maximum intensity, −10..1 (negative: narrower petals).
+    pub min_ratio: f64,
+}
+
+/// Nishita's polka dots, eq 10.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields)]
+pub struct PolkaDotDistribution {
+    /// Beam spread γ, degrees, 0.01..=180.
+    pub beam_spread_deg: f64,
+    /// Edge sharpness q, 0..=1.
+    pub sharpness: f64,
+    /// Period Δφ, degrees, 0.1..=360.
+    pub period_phi_deg: f64,
+    /// Period Δθ, degrees, 0.1..=180.
+    pub period_theta_deg: f64,
+    /// Ratio p of minimum to maximum intensity, −10..1 (negative: smaller dots).
+    pub min_ratio: f64,
+}
+
+/// Tabulated relative intensity `values[i_phi][i_theta]`, bilinear in (θ, φ).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields)]
+pub struct TabulatedDistribution {
+    /// θ samples, degrees, strictly increasing within 0..=180; beyond the
+    /// last sample the intensity is 0.
+    pub theta_deg: Vec<f64>,
+    /// φ samples, degrees, strictly increasing within 0..360, periodic; one
+    /// sample means axisymmetric.
+    pub phi_deg: Vec<f64>,
+    /// Relative intensities, ≥ 0, one row per φ sample, one column per θ sample.
+    pub values: Vec<Vec<f64>>,
 }
 
 /// A directional light (Blender's Sun lamp): parallel rays from `direction_to_sun`.
@@ -800,6 +1050,116 @@ impl Validator {
             self.fail(&format!("{field}.g"), m);
         }
     }
+    fn ies(&mut self, field: &str, r: Option<&IesProfileRef>) {
+        if let Some(r) = r {
+            if r.file.trim().is_empty() {
+                self.fail(&format!("{field}.file"), "empty path: give the .ies file");
+            }
+            self.non_negative(&format!("{field}.strength"), r.strength, "");
+        }
+    }
+    fn beam(&mut self, spread: f64, q: f64) {
+        self.range("beam_spread_deg", spread, 0.01, 180.0, "degrees");
+        self.range("sharpness", q, 0.0, 1.0, "");
+    }
+    fn distribution(&mut self, d: &IntensityDistribution) {
+        match d {
+            IntensityDistribution::Isotropic(_) => {}
+            IntensityDistribution::NishitaSpot(n) => self.beam(n.beam_spread_deg, n.sharpness),
+            IntensityDistribution::UsdShaping(u) => {
+                self.range("cone_angle_deg", u.cone_angle_deg, 0.01, 180.0, "degrees");
+                self.range("cone_softness", u.cone_softness, 0.0, 1.0, "");
+                self.range("focus", u.focus, 0.0, 1e6, "");
+            }
+            IntensityDistribution::Daisy(d) => {
+                self.beam(d.beam_spread_deg, d.sharpness);
+                self.range("period_phi_deg", d.period_phi_deg, 0.1, 360.0, "degrees");
+                self.range("min_ratio", d.min_ratio, -10.0, 1.0, "");
+            }
+            IntensityDistribution::PolkaDot(d) => {
+                self.beam(d.beam_spread_deg, d.sharpness);
+                self.range("period_phi_deg", d.period_phi_deg, 0.1, 360.0, "degrees");
+                self.range("period_theta_deg", d.period_theta_deg, 0.1, 180.0, "degrees");
+                self.range("min_ratio", d.min_ratio, -10.0, 1.0, "");
+            }
+            IntensityDistribution::Tabulated(t) => {
+                if t.theta_deg.is_empty() {
+                    self.fail("theta_deg", "needs at least one θ sample");
+                }
+                if t.phi_deg.is_empty() {
+                    self.fail("phi_deg", "needs at least one φ sample");
+                }
+                self.increasing("theta_deg", &t.theta_deg, 0.0, 180.0);
+                self.increasing("phi_deg", &t.phi_deg, 0.0, 360.0);
+                if !t.phi_deg.is_empty() && t.phi_deg.last().is_some_and(|l| *l - t.phi_deg[0] >= 360.0) {
+                    self.fail("phi_deg", "φ samples must span less than 360° (the table is periodic)");
+                }
+                if t.values.len() != t.phi_deg.len() {
+                    self.fail(
+                        "values",
+                        format!("has {} rows, expected one per φ sample ({})", t.values.len(), t.phi_deg.len()),
+                    );
+                }
+                for (i, row) in t.values.iter().enumerate() {
+                    if row.len() != t.theta_deg.len() {
+                        self.fail(
+                            &format!("values[{i}]"),
+                            format!("has {} values, expected one per θ sample ({})", row.len(), t.theta_deg.len()),
+                        );
+                    }
+                    for (j, x) in row.iter().enumerate() {
+                        self.non_negative(&format!("values[{i}][{j}]"), *x, "");
+                    }
+                }
+            }
+        }
+    }
+    fn increasing(&mut self, field: &str, xs: &[f64], lo: f64, hi: f64) {
+        let mut last = f64::NEG_INFINITY;
+        for (i, x) in xs.iter().enumerate() {
+            let f = format!("{field}[{i}]");
+            self.range(&f, *x, lo, hi, "degrees");
+            if x.is_finite() && *x <= last {
+                self.fail(&f, format!("must be strictly increasing, got {x} after {last}"));
+            }
+            last = *x;
+        }
+    }
+    fn window_aperture(&mut self, w: &WindowLight) {
+        if w.aperture.len() < 3 {
+            self.fail("aperture", format!("needs at least 3 corners, got {}", w.aperture.len()));
+            return;
+        }
+        for (i, c) in w.aperture.iter().enumerate() {
+            if !self.vec3(&format!("aperture[{i}]"), *c) {
+                return;
+            }
+        }
+        let pts: Vec<DVec3> = w.aperture.iter().map(|c| DVec3::from(*c)).collect();
+        // Newell's normal: robust for any simple polygon.
+        let mut n = DVec3::ZERO;
+        for i in 0..pts.len() {
+            let (a, b) = (pts[i], pts[(i + 1) % pts.len()]);
+            n += DVec3::new((a.y - b.y) * (a.z + b.z), (a.z - b.z) * (a.x + b.x), (a.x - b.x) * (a.y + b.y));
+        }
+        let size = pts.iter().map(|p| (*p - pts[0]).length()).fold(0.0, f64::max);
+        if n.length() <= 1e-12 * size * size || size == 0.0 {
+            self.fail("aperture", "the corners enclose no area");
+            return;
+        }
+        let n = n.normalize();
+        for (i, p) in pts.iter().enumerate() {
+            let off = (*p - pts[0]).dot(n).abs();
+            if off > 1e-6 * size {
+                self.fail(&format!("aperture[{i}]"), format!("corner is {off:.3e} m off the window's plane: the polygon must be planar"));
+                return;
+            }
+        }
+        let to_light = DVec3::from(w.direction_to_light);
+        if to_light.length() > 0.0 && n.dot(to_light.normalize()).abs() < 1e-9 {
+            self.fail("direction_to_light", "is parallel to the window's plane: no light passes");
+        }
+    }
     fn orientation(&mut self, position: [f64; 3], o: &Orientation) {
         self.push("orientation");
         match o {
@@ -912,6 +1272,33 @@ impl Validator {
                 Light::Ambient(AmbientLight { color, radiance, .. }) => {
                     self.color("color", *color);
                     self.non_negative("radiance", *radiance, "W·m⁻²·sr⁻¹");
+                }
+                Light::Point(p) => {
+                    self.vec3("position", p.position);
+                    self.orientation(p.position, &p.orientation);
+                    self.color("color", p.color);
+                    self.non_negative("power_w", p.power_w, "W");
+                    self.non_negative("radius_m", p.radius_m, "m");
+                    self.push("distribution");
+                    self.distribution(&p.distribution);
+                    self.pop();
+                    self.ies("ies", p.ies.as_ref());
+                }
+                Light::Spot(p) => {
+                    self.vec3("position", p.position);
+                    self.orientation(p.position, &p.orientation);
+                    self.color("color", p.color);
+                    self.non_negative("power_w", p.power_w, "W");
+                    self.non_negative("radius_m", p.radius_m, "m");
+                    self.range("spot_size_deg", p.spot_size_deg, 0.1, 180.0, "degrees");
+                    self.range("spot_blend", p.spot_blend, 0.0, 1.0, "");
+                    self.ies("ies", p.ies.as_ref());
+                }
+                Light::Window(w) => {
+                    self.direction("direction_to_light", w.direction_to_light);
+                    self.color("color", w.color);
+                    self.non_negative("irradiance_w_m2", w.irradiance_w_m2, "W·m⁻²");
+                    self.window_aperture(w);
                 }
             }
             self.pop();

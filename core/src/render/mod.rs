@@ -242,6 +242,9 @@ fn medium_label(i: usize, m: &Medium) -> String {
 fn light_label(i: usize, l: &Light) -> String {
     let name = match l {
         Light::Sun(SunLight { name, .. }) | Light::Ambient(AmbientLight { name, .. }) => name,
+        Light::Point(l) => &l.name,
+        Light::Spot(l) => &l.name,
+        Light::Window(l) => &l.name,
     };
     format!("lights[{i}] \"{name}\"")
 }
@@ -341,6 +344,8 @@ fn prepare_lights<const C: usize>(scene: &Scene, report: &mut Report) -> LightSe
                     .plan
                     .computed(label, format!("uniform ambient radiance {radiance} W/m²/sr, isotropic in-scatter"));
             }
+            // Stage lights are prepared by the `stage` module.
+            Light::Point(_) | Light::Spot(_) | Light::Window(_) => {}
         }
     }
     if scene.lights.is_empty() {
