@@ -100,7 +100,7 @@ fn parse_layers(names: Vec<String>) -> PyResult<Vec<LayerKind>> {
         .map(|n| {
             serde_json_layer(&n).ok_or_else(|| {
                 PyValueError::new_err(format!(
-                    "unknown layer {n:?}: expected inscatter, transmittance, depth, sun_transmittance or error"
+                    "unknown layer {n:?}: expected inscatter, transmittance, depth, sun_transmittance, error or inscatter_per_light"
                 ))
             })
         })
@@ -114,6 +114,7 @@ fn serde_json_layer(name: &str) -> Option<LayerKind> {
         LayerKind::Depth,
         LayerKind::SunTransmittance,
         LayerKind::Error,
+        LayerKind::InscatterPerLight,
     ]
     .into_iter()
     .find(|k| k.to_string() == name)
@@ -139,8 +140,8 @@ fn rgb_array<'py>(py: Python<'py>, px: &[[f32; 3]], w: usize, h: usize) -> PyRes
 }
 
 /// Renders a scene. Returns `(layers, report)`: a dict of float32 numpy
-/// arrays (`inscatter`, `transmittance`, `sun_transmittance`, `error`: H×W×3;
-/// `depth`: H×W), row 0 at the top, and the report as a JSON string.
+/// arrays (`inscatter`, `transmittance`, `sun_transmittance`, `error` and
+/// `inscatter.<light name>` per stage light: H×W×3; `depth`: H×W), row 0 at the top, and the report as a JSON string.
 /// The interpreter is released while rendering.
 #[pyfunction]
 #[pyo3(signature = (scene, tolerance = None, threads = None, layers = None))]
@@ -163,6 +164,12 @@ fn render<'py>(
             LayerKind::SunTransmittance => rgb_array(py, &images.sun_transmittance, w, h)?,
             LayerKind::Error => rgb_array(py, &images.error, w, h)?,
             LayerKind::Depth => PyArray1::from_vec(py, images.depth.clone()).reshape([h, w])?.into_any(),
+            LayerKind::InscatterPerLight => {
+                for (name, px) in images.light_layer_names.iter().zip(&images.light_inscatter) {
+                    out.set_item(name, rgb_array(py, px, w, h)?)?;
+                }
+                continue;
+            }
         };
         out.set_item(k.to_string(), arr)?;
     }

@@ -788,6 +788,8 @@ pub enum LayerKind {
     SunTransmittance,
     /// Estimated absolute error of `inscatter`, RGB, W·m⁻²·sr⁻¹.
     Error,
+    /// One `inscatter.<light name>` layer per point, spot and window light, RGB, W·m⁻²·sr⁻¹.
+    InscatterPerLight,
 }
 
 /// Spectral or RGB computation.
@@ -890,7 +892,27 @@ impl Scene {
             path: ".".into(),
             message: format!("cannot read file: {e}"),
         })?;
-        Scene::from_json_str(&text, &path.display().to_string())
+        let mut scene = Scene::from_json_str(&text, &path.display().to_string())?;
+        if let Some(dir) = path.parent() {
+            scene.resolve_relative_paths(dir);
+        }
+        Ok(scene)
+    }
+
+    /// Makes relative file references (IES profiles) relative to `dir`.
+    pub fn resolve_relative_paths(&mut self, dir: &Path) {
+        for l in &mut self.lights {
+            let ies = match l {
+                Light::Point(p) => p.ies.as_mut(),
+                Light::Spot(p) => p.ies.as_mut(),
+                _ => None,
+            };
+            if let Some(r) = ies
+                && Path::new(&r.file).is_relative()
+            {
+                r.file = dir.join(&r.file).display().to_string();
+            }
+        }
     }
 
     /// Serialises to pretty JSON.
@@ -1151,7 +1173,10 @@ impl Validator {
         for (i, p) in pts.iter().enumerate() {
             let off = (*p - pts[0]).dot(n).abs();
             if off > 1e-6 * size {
-                self.fail(&format!("aperture[{i}]"), format!("corner is {off:.3e} m off the window's plane: the polygon must be planar"));
+                self.fail(
+                    &format!("aperture[{i}]"),
+                    format!("corner is {off:.3e} m off the window's plane: the polygon must be planar"),
+                );
                 return;
             }
         }
@@ -1554,6 +1579,7 @@ impl fmt::Display for LayerKind {
             LayerKind::Depth => "depth",
             LayerKind::SunTransmittance => "sun_transmittance",
             LayerKind::Error => "error",
+            LayerKind::InscatterPerLight => "inscatter_per_light",
         };
         f.write_str(s)
     }

@@ -1,4 +1,615 @@
-//! Light sources with angular intensity distributions (Nishita et al. 1987,
-//! appendix) and IES LM-63 photometry.
+//! Stage lights: point sources with an angular intensity distribution
+//! `I(θ, φ)` (Nishita, Miyawaki & Nakamae 1987, appendix eqs 7–10), Blender's
+//! point and spot lamps as Cycles shades them, UsdLux shaping, tables and IES
+//! LM-63 profiles ([`ies`]); and parallel light through a window ([`window`]).
+//!
+//! **Angles.** θ is measured from the illumination axis, the light's local −Z
+//! (Blender and USD lights shine along −Z), φ around the axis from the local
+//! +X towards +Y (Nishita Fig. 8's reference plane is the local XZ plane).
+//!
+//! **Units.** A point light's radiant intensity towards ω, W·sr⁻¹ per channel,
+//! is `I(ω) = colour · P · K · D(ω) · F_IES(ω)`: P is Blender's Power (W),
+//! `K = 1/(4π)` sr⁻¹ is Cycles' conversion of a point lamp's watts to
+//! intensity (`docs/cycles-conventions.md`), `D` the relative distribution
+//! (1 on the axis) and `F_IES` the IES node's factor (1 without a profile).
+//!
+//! **Illumination volume.** Every distribution knows the half-angle outside
+//! which it is exactly zero: the light's bounding cone. View rays that miss it
+//! evaluate no integral, occluders outside it cast nothing.
 
 pub mod ies;
+pub mod shadow;
+pub mod window;
+
+use crate::scene::{IntensityDistribution, Orientation, PointLight, SpotLight};
+use glam::{DQuat, DVec3};
+use std::f64::consts::PI;
+use std::sync::Arc;
+
+/// Cycles' point/spot lamp conversion, W·sr⁻¹ of intensity per W of Power.
+pub const CYCLES_WATTS_TO_INTENSITY: f64 = 1.0 / (4.0 * PI);
+
+/// `smoothstep(0, 1, x)` = `3x² − 2x³` on [0, 1], clamped (Cycles' `smoothstepf`).
+#[inline]
+pub fn smoothstep01(x: f64) -> f64 {
+    if x <= 0.0 {
+        0.0
+    } else if x >= 1.0 {
+        1.0
+    } else {
+        x * x * (3.0 - 2.0 * x)
+    }
+}
+
+/// The relative distribution, resolved for fast evaluation.
+#[derive(Debug, Clone)]
+pub enum Shape {
+    /// 1 everywhere.
+    Isotropic,
+    /// Cycles' spot mask, `smoothstep((cos θ − cos_half)/smooth)`, a step when `smooth = 0`.
+    CyclesSpot {
+        /// cos of half the spot size.
+        cos_half: f64,
+        /// `blend · (1 − cos_half)`.
+        smooth: f64,
+    },
+    /// Nishita eq 7 with the daisy / polka-dot factors of eqs 8–10.
+    Nishita {
+        /// cos γ.
+        cos_gamma: f64,
+        /// Edge sharpness q.
+        q: f64,
+        /// Petal period Δφ, rad (0: no petals).
+        period_phi: f64,
+        /// Polka period Δθ, rad (0: no dots).
+        period_theta: f64,
+        /// Minimum ratio p of eq 8.
+        p: f64,
+    },
+    /// UsdLux ShapingAPI: `|cos θ|^focus · (1 − smoothstep(θ; θ_c(1−s), θ_c))`.
+    UsdShaping {
+        /// Cut-off half-angle θ_c, rad.
+        cutoff: f64,
+        /// Softness s.
+        softness: f64,
+        /// Focus exponent.
+        focus: f64,
+    },
+    /// Bilinear table over (θ, φ), φ periodic.
+    Tabulated(Arc<Table>),
+}
+
+/// A table of relative intensities.
+#[derive(Debug, Clone)]
+pub struct Table {
+    /// θ samples, rad, increasing.
+    pub theta: Vec<f64>,
+    /// φ samples, rad, increasing, spanning < 2π.
+    pub phi: Vec<f64>,
+    /// `values[i_phi][i_theta]`.
+    pub values: Vec<Vec<f64>>,
+}
+
+/// Linear interpolation in an increasing table: (index, weight of index+1);
+/// `None` outside `[xs[0], xs[last]]`.
+fn bracket(xs: &[f64], x: f64) -> Option<(usize, f64)> {
+    let n = xs.len();
+    if n == 1 {
+        return if (x - xs[0]).abs() <= 1e-12 { Some((0, 0.0)) } else { None };
+    }
+    if x < xs[0] || x > xs[n - 1] {
+        return None;
+    }
+    let i = xs.partition_point(|v| *v <= x).clamp(1, n - 1) - 1;
+    let w = (x - xs[i]) / (xs[i + 1] - xs[i]);
+    Some((i, w.clamp(0.0, 1.0)))
+}
+
+impl Table {
+    fn column(&self, row: usize, theta: f64) -> f64 {
+        let r = &self.values[row];
+        if self.theta.len() == 1 {
+            return if theta <= self.theta[0] { r[0] } else { 0.0 };
+        }
+        if theta < self.theta[0] {
+            return r[0];
+        }
+        match bracket(&self.theta, theta) {
+            Some((i, w)) => r[i] * (1.0 - w) + r[i + 1] * w,
+            None => 0.0,
+        }
+    }
+
+    /// Relative intensity at (θ, φ), rad.
+    pub fn eval(&self, theta: f64, phi: f64) -> f64 {
+        let n = self.phi.len();
+        if n == 1 {
+            return self.column(0, theta);
+        }
+        let two_pi = 2.0 * PI;
+        let p0 = self.phi[0];
+        let x = (phi - p0).rem_euclid(two_pi) + p0;
+        let last = self.phi[n - 1];
+        if x <= last {
+            let (i, w) = bracket(&self.phi, x).unwrap_or((0, 0.0));
+            self.column(i, theta) * (1.0 - w) + self.column(i + 1, theta) * w
+        } else {
+            // Wrap-around cell between the last sample and the first + 2π.
+            let w = (x - last) / (p0 + two_pi - last);
+            self.column(n - 1, theta) * (1.0 - w) + self.column(0, theta) * w
+        }
+    }
+
+    /// Largest θ with a possibly non-zero value.
+    pub fn reach(&self) -> f64 {
+        let n = self.theta.len();
+        let mut last_nonzero = None;
+        for j in 0..n {
+            if self.values.iter().any(|r| r[j] > 0.0) {
+                last_nonzero = Some(j);
+            }
+        }
+        match last_nonzero {
+            None => 0.0,
+            Some(j) if j + 1 < n => self.theta[j + 1],
+            Some(j) => self.theta[j],
+        }
+    }
+}
+
+/// Nishita eq 8: `k(x) = max(p + (1 − p)·|2 mod(x, Δ) − Δ|/Δ, 0)`.
+#[inline]
+fn nishita_k(x: f64, period: f64, p: f64) -> f64 {
+    let m = x.rem_euclid(period);
+    (p + (1.0 - p) * (2.0 * m - period).abs() / period).max(0.0)
+}
+
+impl Shape {
+    /// Relative intensity for the direction with `cos θ` and azimuth `φ` (rad).
+    pub fn eval(&self, cos_theta: f64, phi: f64) -> f64 {
+        match self {
+            Shape::Isotropic => 1.0,
+            Shape::CyclesSpot { cos_half, smooth } => {
+                if *smooth > 0.0 {
+                    smoothstep01((cos_theta - cos_half) / smooth)
+                } else if cos_theta > *cos_half {
+                    1.0
+                } else {
+                    0.0
+                }
+            }
+            Shape::Nishita {
+                cos_gamma,
+                q,
+                period_phi,
+                period_theta,
+                p,
+            } => {
+                if cos_theta < *cos_gamma {
+                    return 0.0;
+                }
+                let one_minus = 1.0 - cos_gamma;
+                let base = if one_minus > 0.0 {
+                    (1.0 - q) * (cos_theta - cos_gamma) / one_minus + q
+                } else {
+                    1.0
+                };
+                let mut v = base;
+                if *period_phi > 0.0 {
+                    v *= nishita_k(phi.rem_euclid(2.0 * PI), *period_phi, *p);
+                }
+                if *period_theta > 0.0 {
+                    let theta = cos_theta.clamp(-1.0, 1.0).acos();
+                    let phi = phi.rem_euclid(2.0 * PI);
+                    let parity = ((phi / period_phi).floor() as i64 + (theta / period_theta).floor() as i64).rem_euclid(2);
+                    v *= nishita_k(theta, *period_theta, *p) * parity as f64;
+                }
+                v
+            }
+            Shape::UsdShaping { cutoff, softness, focus } => {
+                let theta = cos_theta.clamp(-1.0, 1.0).acos();
+                if theta > *cutoff {
+                    return 0.0;
+                }
+                let start = cutoff * (1.0 - softness);
+                let cone = if *softness > 0.0 && theta > start {
+                    1.0 - smoothstep01((theta - start) / (cutoff - start))
+                } else {
+                    1.0
+                };
+                let f = if *focus > 0.0 { cos_theta.abs().powf(*focus) } else { 1.0 };
+                cone * f
+            }
+            Shape::Tabulated(t) => t.eval(cos_theta.clamp(-1.0, 1.0).acos(), phi),
+        }
+    }
+
+    /// Whether the value depends on φ (then φ is computed per evaluation).
+    pub fn needs_phi(&self) -> bool {
+        match self {
+            Shape::Nishita { period_phi, .. } => *period_phi > 0.0,
+            Shape::Tabulated(t) => t.phi.len() > 1,
+            _ => false,
+        }
+    }
+
+    /// cos of the half-angle outside which the shape is exactly 0 (−1: none).
+    pub fn cos_reach(&self) -> f64 {
+        match self {
+            Shape::Isotropic => -1.0,
+            Shape::CyclesSpot { cos_half, .. } => *cos_half,
+            Shape::Nishita { cos_gamma, .. } => *cos_gamma,
+            Shape::UsdShaping { cutoff, .. } => cutoff.cos(),
+            Shape::Tabulated(t) => t.reach().cos(),
+        }
+    }
+
+    /// cos of the angles where the shape has a kink or jump (quadrature splits there).
+    pub fn kinks(&self) -> Vec<f64> {
+        match self {
+            Shape::CyclesSpot { cos_half, smooth } if *smooth > 0.0 => vec![*cos_half, (cos_half + smooth).min(1.0)],
+            Shape::CyclesSpot { cos_half, .. } => vec![*cos_half],
+            Shape::Nishita { cos_gamma, .. } => vec![*cos_gamma],
+            Shape::UsdShaping { cutoff, softness, .. } => vec![cutoff.cos(), (cutoff * (1.0 - softness)).cos()],
+            _ => Vec::new(),
+        }
+    }
+
+    /// Upper bound of the shape's value.
+    pub fn max_value(&self) -> f64 {
+        match self {
+            Shape::Tabulated(t) => t.values.iter().flatten().fold(0.0, |m: f64, v| m.max(*v)),
+            _ => 1.0,
+        }
+    }
+
+    /// The shape for a scene distribution.
+    pub fn from_distribution(d: &IntensityDistribution) -> Shape {
+        let rad = |deg: f64| deg.to_radians();
+        match d {
+            IntensityDistribution::Isotropic(_) => Shape::Isotropic,
+            IntensityDistribution::NishitaSpot(n) => Shape::Nishita {
+                cos_gamma: rad(n.beam_spread_deg).cos(),
+                q: n.sharpness,
+                period_phi: 0.0,
+                period_theta: 0.0,
+                p: 0.0,
+            },
+            IntensityDistribution::Daisy(n) => Shape::Nishita {
+                cos_gamma: rad(n.beam_spread_deg).cos(),
+                q: n.sharpness,
+                period_phi: rad(n.period_phi_deg),
+                period_theta: 0.0,
+                p: n.min_ratio,
+            },
+            IntensityDistribution::PolkaDot(n) => Shape::Nishita {
+                cos_gamma: rad(n.beam_spread_deg).cos(),
+                q: n.sharpness,
+                period_phi: rad(n.period_phi_deg),
+                period_theta: rad(n.period_theta_deg),
+                p: n.min_ratio,
+            },
+            IntensityDistribution::UsdShaping(u) => Shape::UsdShaping {
+                cutoff: rad(u.cone_angle_deg),
+                softness: u.cone_softness,
+                focus: u.focus,
+            },
+            IntensityDistribution::Tabulated(t) => Shape::Tabulated(Arc::new(Table {
+                theta: t.theta_deg.iter().map(|d| rad(*d)).collect(),
+                phi: t.phi_deg.iter().map(|d| rad(*d)).collect(),
+                values: t.values.clone(),
+            })),
+        }
+    }
+}
+
+/// A light's local frame in world space.
+#[derive(Debug, Clone, Copy)]
+pub struct LightFrame {
+    /// Illumination axis (local −Z), unit.
+    pub axis: DVec3,
+    /// Local +X, unit (φ = 0).
+    pub x: DVec3,
+    /// Local +Y, unit (φ = 90°).
+    pub y: DVec3,
+}
+
+impl LightFrame {
+    /// The frame of an oriented light at `position`.
+    pub fn new(position: DVec3, orientation: &Orientation) -> LightFrame {
+        let q = match orientation {
+            Orientation::QuaternionWxyz([w, x, y, z]) => DQuat::from_xyzw(*x, *y, *z, *w).normalize(),
+            Orientation::LookAt { target, up } => {
+                let f = (DVec3::from(*target) - position).normalize();
+                let up = DVec3::from(*up).normalize();
+                // Local −Z = forward, local +Y ≈ up.
+                let zl = -f;
+                let xl = up.cross(zl).try_normalize().unwrap_or_else(|| zl.any_orthonormal_vector());
+                let yl = zl.cross(xl);
+                DQuat::from_mat3(&glam::DMat3::from_cols(xl, yl, zl)).normalize()
+            }
+        };
+        LightFrame {
+            axis: q * DVec3::NEG_Z,
+            x: q * DVec3::X,
+            y: q * DVec3::Y,
+        }
+    }
+
+    /// A unit world direction in local coordinates (light shines along local −Z).
+    #[inline]
+    pub fn to_local(&self, dir: DVec3) -> DVec3 {
+        DVec3::new(dir.dot(self.x), dir.dot(self.y), -dir.dot(self.axis))
+    }
+}
+
+/// A point or spot light, resolved to `C` channels.
+#[derive(Debug, Clone)]
+pub struct PointSource<const C: usize> {
+    /// Name (for reports and per-light layers).
+    pub name: String,
+    /// Position, m.
+    pub position: DVec3,
+    /// Local frame.
+    pub frame: LightFrame,
+    /// Intensity on the axis before shape and IES factors, W·sr⁻¹ per channel.
+    pub intensity: [f64; C],
+    /// Relative distribution.
+    pub shape: Shape,
+    /// IES profile and its strength.
+    pub ies: Option<(Arc<ies::IesProfile>, f64)>,
+    /// View rays closer than this to the light are evaluated at this distance, m (> 0).
+    pub min_distance: f64,
+    /// cos of the bounding cone's half-angle about `frame.axis` (−1: the whole sphere).
+    pub cos_reach: f64,
+    /// Upper bound of `shape × IES factor`.
+    pub max_factor: f64,
+}
+
+/// Closest distance at which a view ray is evaluated, m, for a light of
+/// radius 0: a ray exactly through a point light has infinite in-scatter; a
+/// floor keeps it finite (and the report says where it applied).
+pub const MIN_LIGHT_DISTANCE: f64 = 1e-9;
+
+impl<const C: usize> PointSource<C> {
+    /// Relative factor `D(ω)·F_IES(ω)` for the unit world direction from the light.
+    #[inline]
+    pub fn factor(&self, dir: DVec3) -> f64 {
+        let cos_theta = dir.dot(self.frame.axis);
+        if cos_theta < self.cos_reach {
+            return 0.0;
+        }
+        let phi = if self.shape.needs_phi() {
+            dir.dot(self.frame.y).atan2(dir.dot(self.frame.x))
+        } else {
+            0.0
+        };
+        let mut f = self.shape.eval(cos_theta, phi);
+        if let Some((profile, strength)) = &self.ies
+            && f > 0.0
+        {
+            f *= strength * profile.cycles_factor(self.frame.to_local(dir));
+        }
+        f
+    }
+
+    /// cos θ values where the factor has kinks or jumps.
+    pub fn kinks(&self) -> Vec<f64> {
+        let mut k = self.shape.kinks();
+        if self.cos_reach > -1.0 {
+            k.push(self.cos_reach);
+        }
+        k
+    }
+
+    /// Resolves a scene point light (`ies` already loaded).
+    pub fn from_point(l: &PointLight, colour: [f64; C], ies: Option<(Arc<ies::IesProfile>, f64)>) -> Self {
+        let position = DVec3::from(l.position);
+        let shape = Shape::from_distribution(&l.distribution);
+        Self::assemble(&l.name, position, &l.orientation, l.power_w, l.radius_m, colour, shape, ies)
+    }
+
+    /// Resolves a scene spot light (`ies` already loaded).
+    pub fn from_spot(l: &SpotLight, colour: [f64; C], ies: Option<(Arc<ies::IesProfile>, f64)>) -> Self {
+        let position = DVec3::from(l.position);
+        let cos_half = (0.5 * l.spot_size_deg).to_radians().cos();
+        let shape = Shape::CyclesSpot {
+            cos_half,
+            smooth: l.spot_blend * (1.0 - cos_half),
+        };
+        Self::assemble(&l.name, position, &l.orientation, l.power_w, l.radius_m, colour, shape, ies)
+    }
+
+    #[allow(clippy::too_many_arguments)]
+    fn assemble(
+        name: &str,
+        position: DVec3,
+        orientation: &Orientation,
+        power_w: f64,
+        radius_m: f64,
+        colour: [f64; C],
+        shape: Shape,
+        ies: Option<(Arc<ies::IesProfile>, f64)>,
+    ) -> Self {
+        let frame = LightFrame::new(position, orientation);
+        let mut cos_reach = shape.cos_reach();
+        let mut max_factor = shape.max_value();
+        if let Some((p, s)) = &ies {
+            cos_reach = cos_reach.max(p.bounding_half_angle().cos());
+            max_factor *= s * p.max_cycles_factor();
+        }
+        PointSource {
+            name: name.to_string(),
+            position,
+            frame,
+            intensity: colour.map(|c| c * power_w * CYCLES_WATTS_TO_INTENSITY),
+            shape,
+            ies,
+            min_distance: radius_m.max(MIN_LIGHT_DISTANCE),
+            cos_reach,
+            max_factor,
+        }
+    }
+}
+
+/// The parameter intervals `[t0, t1] ⊂ [lo, hi]` where `o + t·d` lies in the
+/// cone `{x : (x − apex)·axis ≥ c·|x − apex|}` (`c` = cos of the half-angle,
+/// any value in [−1, 1]; `d` unit). Robust form: the quadratic's roots only
+/// propose break points; every piece is classified by testing its midpoint
+/// with the exact predicate, so grazing rays and the second nappe never
+/// produce wrong intervals.
+#[allow(clippy::too_many_arguments)]
+pub fn ray_cone_intervals(o: DVec3, d: DVec3, lo: f64, hi: f64, apex: DVec3, axis: DVec3, c: f64, out: &mut Vec<(f64, f64)>) {
+    out.clear();
+    if hi <= lo {
+        return;
+    }
+    if c <= -1.0 {
+        out.push((lo, hi));
+        return;
+    }
+    let w = o - apex;
+    let inside = |t: f64| -> bool {
+        let v = if t.is_finite() { w + d * t } else { d };
+        v.dot(axis) >= c * v.length()
+    };
+    // (v·a)² − c²|v|² = 0 with v = w + t d, factored to limit cancellation.
+    let (da, wa) = (d.dot(axis), w.dot(axis));
+    let wl = w.length();
+    let qa = (da - c) * (da + c);
+    let qb = 2.0 * (da * wa - c * c * d.dot(w));
+    let qc = (wa - c * wl) * (wa + c * wl);
+    let mut cuts: [f64; 6] = [lo, f64::NAN, f64::NAN, f64::NAN, f64::NAN, hi];
+    let mut n = 1;
+    let mut push = |t: f64| {
+        if t.is_finite() && t > lo && t < hi {
+            cuts[n] = t;
+            n += 1;
+        }
+    };
+    if qa.abs() > 1e-300 {
+        // (qb/2)² − qa·qc, rewritten without the cancellation of its two large
+        // terms (which loses every digit for rays passing close to the apex):
+        // = c²·(|(d·a)w − (w·a)d|² − c²|w × d|²)   (|d| = 1).
+        let disc4 = c * c * ((w * da - d * wa).length_squared() - c * c * w.cross(d).length_squared());
+        if disc4 >= 0.0 {
+            let s = disc4.sqrt();
+            let half_b = 0.5 * qb;
+            let q = -(half_b + half_b.signum() * s);
+            if q != 0.0 {
+                push(q / qa);
+                push(qc / q);
+            } else {
+                push(-half_b / qa);
+            }
+        }
+    } else if qb != 0.0 {
+        push(-qc / qb);
+    }
+    // The plane through the apex ⊥ the axis: for c = 0 the cone is that half
+    // space and the quadratic has a double root that rounding may lose.
+    if da != 0.0 {
+        push(-wa / da);
+    }
+    // The apex itself, where the predicate changes on a ray through it.
+    let tc = -w.dot(d);
+    if (w + d * tc).length() <= 1e-12 * (1.0 + wl) {
+        push(tc);
+    }
+    cuts[n] = hi;
+    let cuts = &mut cuts[..=n];
+    cuts.sort_by(f64::total_cmp);
+    for k in 0..n {
+        let (a, b) = (cuts[k], cuts[k + 1]);
+        if b <= a {
+            continue;
+        }
+        let mid = if b.is_finite() {
+            0.5 * (a + b)
+        } else if a.is_finite() {
+            a.abs().max(1.0) * 2.0 + a.abs() * 1e6 + 1e6
+        } else {
+            0.0
+        };
+        if inside(mid) {
+            match out.last_mut() {
+                Some(last) if last.1 >= a => last.1 = b,
+                _ => out.push((a, b)),
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn cone_intervals_match_pointwise_predicate() {
+        let apex = DVec3::new(0.3, -0.2, 4.0);
+        let axis = DVec3::new(0.1, 0.2, -1.0).normalize();
+        let mut out = Vec::new();
+        let mut rng = 12345u64;
+        let mut next = || {
+            rng = rng.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            ((rng >> 11) as f64) / ((1u64 << 53) as f64) * 2.0 - 1.0
+        };
+        for &c in &[0.99999, 0.9, 0.5, 0.0, -0.3, -0.9] {
+            for _ in 0..300 {
+                let o = DVec3::new(next() * 6.0, next() * 6.0, next() * 6.0);
+                let d = DVec3::new(next(), next(), next()).normalize();
+                ray_cone_intervals(o, d, 0.0, 20.0, apex, axis, c, &mut out);
+                for k in 0..400 {
+                    let t = 20.0 * (k as f64 + 0.5) / 400.0;
+                    let v = o + d * t - apex;
+                    let inside = v.dot(axis) >= c * v.length();
+                    let near_edge = (v.dot(axis) - c * v.length()).abs() < 1e-6 * v.length();
+                    let in_list = out.iter().any(|(a, b)| t >= *a && t <= *b);
+                    assert!(near_edge || inside == in_list, "c={c} t={t} inside={inside} list={out:?}");
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn spot_mask_is_cycles_smoothstep() {
+        let cos_half = (22.5f64).to_radians().cos();
+        let s = Shape::CyclesSpot {
+            cos_half,
+            smooth: 0.15 * (1.0 - cos_half),
+        };
+        assert_eq!(s.eval(1.0, 0.0), 1.0);
+        assert_eq!(s.eval(cos_half - 1e-9, 0.0), 0.0);
+        let mid = cos_half + 0.5 * 0.15 * (1.0 - cos_half);
+        assert!((s.eval(mid, 0.0) - 0.5).abs() < 1e-12);
+    }
+
+    #[test]
+    fn nishita_eq7_limits() {
+        let s = Shape::Nishita {
+            cos_gamma: 0.5,
+            q: 0.25,
+            period_phi: 0.0,
+            period_theta: 0.0,
+            p: 0.0,
+        };
+        assert!((s.eval(1.0, 0.0) - 1.0).abs() < 1e-15);
+        assert!((s.eval(0.5, 0.0) - 0.25).abs() < 1e-15);
+        assert_eq!(s.eval(0.49, 0.0), 0.0);
+    }
+
+    #[test]
+    fn table_reproduces_nodes_and_wraps() {
+        let t = Table {
+            theta: vec![0.0, 0.5, 1.0],
+            phi: vec![0.0, PI],
+            values: vec![vec![1.0, 0.5, 0.0], vec![2.0, 1.0, 0.0]],
+        };
+        assert!((t.eval(0.5, 0.0) - 0.5).abs() < 1e-15);
+        assert!((t.eval(0.5, PI) - 1.0).abs() < 1e-15);
+        assert!((t.eval(0.5, 1.5 * PI) - 0.75).abs() < 1e-12);
+        assert!((t.eval(0.5, -0.5 * PI) - 0.75).abs() < 1e-12);
+        assert_eq!(t.eval(1.2, 0.0), 0.0);
+        assert!((t.reach() - 1.0).abs() < 1e-15);
+    }
+}

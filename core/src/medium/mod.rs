@@ -150,6 +150,55 @@ impl<const C: usize> PreparedMedium<C> {
         }
     }
 
+    /// `Σ σ_s(p)·phase(μ)` at the point `p`, m⁻¹·sr⁻¹ per channel, for light
+    /// scattered by the cosine `mu` (μ = 1: forward). Zero outside the medium.
+    pub fn scattering_phase_at(&self, p: DVec3, mu: f64) -> [f64; C] {
+        match self {
+            PreparedMedium::Homogeneous(m) => {
+                if let Some((min, max)) = m.bounds
+                    && (p.cmplt(min).any() || p.cmpgt(max).any())
+                {
+                    return [0.0; C];
+                }
+                let ph = m.phase.eval(mu);
+                m.scattering.map(|s| s * ph)
+            }
+            PreparedMedium::HeightFog(m) => {
+                let x = -(p.z - m.reference_height) / m.scale_height;
+                let rho = x.exp();
+                let (pr, pm) = (phase::PhaseFunction::Rayleigh.eval(mu), m.mie_phase.eval(mu));
+                let mut out = [0.0; C];
+                for (c, o) in out.iter_mut().enumerate() {
+                    let v = m.rayleigh_scattering[c] * pr + m.mie_scattering[c] * pm;
+                    *o = if v == 0.0 { 0.0 } else { v * rho };
+                }
+                out
+            }
+            PreparedMedium::FogLayer(m) => {
+                if p.z < m.ground || p.z > m.top {
+                    return [0.0; C];
+                }
+                let ph = m.phase.eval(mu);
+                m.scattering.map(|s| s * ph)
+            }
+        }
+    }
+
+    /// Optical depth of the straight segment from `a` to `b`, per channel.
+    pub fn optical_depth_between(&self, a: DVec3, b: DVec3) -> [f64; C] {
+        let v = b - a;
+        let len = v.length();
+        if len.is_nan() || len <= 0.0 {
+            return [0.0; C];
+        }
+        let ray = ViewRay {
+            origin: a,
+            dir: v / len,
+            s_max: len,
+        };
+        self.optical_depth(&ray, len)
+    }
+
     /// Transmittance of sunlight from direction `to_sun` to point `p`, per channel.
     pub fn sun_transmittance_at(&self, p: DVec3, to_sun: DVec3) -> [f64; C] {
         match self {

@@ -20,6 +20,7 @@
 //! rows finish.
 
 pub mod filter;
+pub mod stage;
 
 use crate::geometry::bvh::Bvh;
 use crate::geometry::camera::CameraRays;
@@ -81,6 +82,11 @@ pub struct Images {
     pub error: Vec<[f32; 3]>,
     /// The layers requested, in order.
     pub layers: Vec<LayerKind>,
+    /// Per stage light (point, spot, window), its in-scatter; empty unless
+    /// `inscatter_per_light` was requested.
+    pub light_inscatter: Vec<Vec<[f32; 3]>>,
+    /// EXR layer names of `light_inscatter` (`inscatter.<light name>`).
+    pub light_layer_names: Vec<String>,
 }
 
 fn split_rgb(name: &str, px: &[[f32; 3]]) -> ImageLayer {
@@ -97,9 +103,15 @@ fn split_rgb(name: &str, px: &[[f32; 3]]) -> ImageLayer {
 impl Images {
     /// The requested layers as EXR layers (`inscatter.R`, …, `depth.Z`).
     pub fn exr_layers(&self) -> Vec<ImageLayer> {
-        self.layers
-            .iter()
-            .map(|k| match k {
+        let mut out = Vec::new();
+        for k in &self.layers {
+            if *k == LayerKind::InscatterPerLight {
+                for (name, px) in self.light_layer_names.iter().zip(&self.light_inscatter) {
+                    out.push(split_rgb(name, px));
+                }
+                continue;
+            }
+            out.push(match k {
                 LayerKind::Inscatter => split_rgb("inscatter", &self.inscatter),
                 LayerKind::Transmittance => split_rgb("transmittance", &self.transmittance),
                 LayerKind::SunTransmittance => split_rgb("sun_transmittance", &self.sun_transmittance),
@@ -108,8 +120,10 @@ impl Images {
                     name: "depth".into(),
                     channels: vec![("Z".into(), self.depth.clone())],
                 },
-            })
-            .collect()
+                LayerKind::InscatterPerLight => unreachable!("handled above"),
+            });
+        }
+        out
     }
 }
 
@@ -130,12 +144,12 @@ pub fn render(scene: &Scene, progress: Option<Progress<'_>>) -> Result<(Images, 
             render_channels::<SPECTRAL_SAMPLES>(scene, &mut report, progress)
         } else {
             render_channels::<3>(scene, &mut report, progress)
-        };
+        }?;
         report.stats.threads = rayon::current_num_threads();
-        (images, report)
+        Ok((images, report))
     };
     if threads == 0 {
-        return Ok(run());
+        return run();
     }
     let pool = rayon::ThreadPoolBuilder::new()
         .num_threads(threads)
@@ -144,7 +158,7 @@ pub fn render(scene: &Scene, progress: Option<Progress<'_>>) -> Result<(Images, 
             threads,
             message: e.to_string(),
         })?;
-    Ok(pool.install(run))
+    pool.install(run)
 }
 
 fn medium_coefficients(m: &Medium) -> Vec<&Coefficient> {
@@ -356,6 +370,199 @@ fn prepare_lights<const C: usize>(scene: &Scene, report: &mut Report) -> LightSe
     set
 }
 
+/// Point, spot and window lights resolved to `C` channels; IES files are
+/// loaded here (a missing or malformed file is an error naming the light).
+fn prepare_stage_lights<const C: usize>(scene: &Scene, report: &mut Report) -> Result<stage::StageLights<C>, RenderError> {
+    let mut out = stage::StageLights::default();
+    let load_ies = |i: usize,
+                    r: &Option<crate::scene::IesProfileRef>|
+     -> Result<Option<(std::sync::Arc<crate::light::ies::IesProfile>, f64)>, RenderError> {
+        match r {
+            None => Ok(None),
+            Some(r) => crate::light::ies::IesProfile::load(std::path::Path::new(&r.file))
+                .map(|p| Some((std::sync::Arc::new(p), r.strength)))
+                .map_err(|e| RenderError::InvalidScene(format!("lights[{i}].ies.file"), e.to_string())),
+        }
+    };
+    for (i, l) in scene.lights.iter().enumerate() {
+        let label = light_label(i, l);
+        match l {
+            Light::Point(p) => {
+                if p.power_w == 0.0 || p.color.iter().all(|c| *c == 0.0) || p.ies.as_ref().is_some_and(|r| r.strength == 0.0) {
+                    report
+                        .plan
+                        .left_out(label, "no contribution: zero power, black colour or zero IES strength");
+                    continue;
+                }
+                let ies = load_ies(i, &p.ies)?;
+                let src = crate::light::PointSource::from_point(p, colour_channels::<C>(p.color), ies);
+                report.plan.computed(label, describe_point(&src, p.power_w));
+                out.points.push(stage::PreparedPoint { light: src, shadows: None });
+            }
+            Light::Spot(p) => {
+                if p.power_w == 0.0 || p.color.iter().all(|c| *c == 0.0) || p.ies.as_ref().is_some_and(|r| r.strength == 0.0) {
+                    report
+                        .plan
+                        .left_out(label, "no contribution: zero power, black colour or zero IES strength");
+                    continue;
+                }
+                let ies = load_ies(i, &p.ies)?;
+                let src = crate::light::PointSource::from_spot(p, colour_channels::<C>(p.color), ies);
+                report.plan.computed(label, describe_point(&src, p.power_w));
+                out.points.push(stage::PreparedPoint { light: src, shadows: None });
+            }
+            Light::Window(wl) => {
+                if wl.irradiance_w_m2 == 0.0 || wl.color.iter().all(|c| *c == 0.0) {
+                    report.plan.left_out(label, "no contribution: zero irradiance or black colour");
+                    continue;
+                }
+                let src = crate::light::window::WindowSource::new(
+                    &wl.name,
+                    DVec3::from(wl.direction_to_light),
+                    colour_channels::<C>(wl.color.map(|c| c * wl.irradiance_w_m2)),
+                    &wl.aperture,
+                );
+                report.plan.computed(
+                    label,
+                    format!(
+                        "parallel light through a {}-corner window, {} W/m²: in-scatter integrated over the prism the window sweeps (Nishita Fig. 3)",
+                        wl.aperture.len(),
+                        wl.irradiance_w_m2
+                    ),
+                );
+                out.windows.push(stage::PreparedWindow { light: src, shadows: None });
+            }
+            _ => {}
+        }
+    }
+    if out.len() > stage::MAX_LIGHT_LAYERS && scene.output.layers.contains(&LayerKind::InscatterPerLight) {
+        report.warnings.push(format!(
+            "{} stage lights: per-light layers are written for the first {} only; `inscatter` contains all of them",
+            out.len(),
+            stage::MAX_LIGHT_LAYERS
+        ));
+    }
+    Ok(out)
+}
+
+fn describe_point<const C: usize>(src: &crate::light::PointSource<C>, power_w: f64) -> String {
+    let reach = if src.cos_reach <= -1.0 {
+        "every direction".to_string()
+    } else {
+        format!("a cone of half-angle {:.4}°", src.cos_reach.clamp(-1.0, 1.0).acos().to_degrees())
+    };
+    let ies = src
+        .ies
+        .as_ref()
+        .map(|(p, s)| format!(", IES ×{s}: {}", p.describe()))
+        .unwrap_or_default();
+    format!(
+        "point source, {power_w} W (Cycles: {:.4} W/sr per W on the axis), illumination volume {reach}{ies}; in-scatter by adaptive Gauss-Kronrod in u = atan((t - t_c)/h) over the exact lit segments",
+        crate::light::CYCLES_WATTS_TO_INTENSITY
+    )
+}
+
+/// Shadow casters per stage light: silhouette wedges of the triangles inside its volume.
+fn prepare_stage_shadows<const C: usize>(scene: &Scene, stage_lights: &mut stage::StageLights<C>, report: &mut Report) {
+    let world: Vec<(Vec<DVec3>, &[[u32; 3]])> = scene
+        .meshes
+        .iter()
+        .map(|m| {
+            let mat = m.transform.to_matrix();
+            (
+                m.positions.iter().map(|p| mat.transform_point3(DVec3::from(*p))).collect(),
+                m.triangles.as_slice(),
+            )
+        })
+        .collect();
+    let indexed: Vec<crate::light::shadow::IndexedMesh<'_>> = world
+        .iter()
+        .map(|(p, t)| crate::light::shadow::IndexedMesh {
+            positions: p,
+            triangles: t,
+        })
+        .collect();
+    if indexed.iter().all(|m| m.triangles.is_empty()) {
+        report
+            .plan
+            .left_out("volumetric shadows", "no meshes: every stage light's volume is fully lit");
+        return;
+    }
+    stage_lights.build_shadows(&indexed);
+    let names = stage_lights.names();
+    let casters: Vec<Option<&crate::light::shadow::ShadowWedges>> = stage_lights
+        .points
+        .iter()
+        .map(|p| p.shadows.as_ref())
+        .chain(stage_lights.windows.iter().map(|w| w.shadows.as_ref()))
+        .collect();
+    for (name, sw) in names.iter().zip(casters) {
+        let Some(sw) = sw else { continue };
+        if sw.triangles_used > 0 {
+            report.plan.computed(
+                format!("shadows of \"{name}\""),
+                format!(
+                    "exact lit segments: {} silhouette/boundary edges of {} triangles inside the illumination volume, crossings found in a light-space BVH, one shadow ray per piece",
+                    sw.wedge_count(),
+                    sw.triangles_used
+                ),
+            );
+        }
+        if sw.triangles_left_out > 0 {
+            report.plan.left_out(
+                format!("{} occluder triangles for \"{name}\"", sw.triangles_left_out),
+                "outside the light's illumination volume: they cast no shadow in its light",
+            );
+        }
+    }
+}
+
+fn report_stage<const C: usize>(stage_lights: &stage::StageLights<C>, stats: &RowStats, report: &mut Report) {
+    if stats.stage_skipped > 0 {
+        report.plan.left_out(
+            format!("{} light-ray integrals", stats.stage_skipped),
+            "the view ray misses the light's illumination volume inside a medium: no integral evaluated",
+        );
+    }
+    report.plan.computed(
+        format!("{} lit segments on {} view rays", stats.stage_segments, stats.stage_rays),
+        format!(
+            "adaptive Gauss-Kronrod G7-K15 per segment to the relative tolerance; {} shadow rays",
+            stats.stage_shadow_rays
+        ),
+    );
+    if stats.stage_clamped > 0 {
+        report.warnings.push(format!(
+            "{} view rays pass closer to a point light than its radius (or {} m for radius 0): evaluated at that distance (a ray through a point light has infinite in-scatter)",
+            stats.stage_clamped,
+            crate::light::MIN_LIGHT_DISTANCE
+        ));
+    }
+    if stats.stage_segments == 0 && !stage_lights.is_empty() {
+        report.plan.left_out(
+            "stage lights' in-scatter",
+            "no view ray crosses an illumination volume inside a medium (lights outside the view or without medium)",
+        );
+    }
+}
+
+/// `inscatter.<name>` layer names, unique and without '.' inside the name.
+fn light_layer_names(names: &[String]) -> Vec<String> {
+    let mut out: Vec<String> = Vec::new();
+    for n in names {
+        let clean: String = n.chars().map(|c| if c == '.' || c.is_control() { '_' } else { c }).collect();
+        let base = format!("inscatter.{}", if clean.is_empty() { "light" } else { &clean });
+        let mut name = base.clone();
+        let mut k = 2;
+        while out.contains(&name) {
+            name = format!("{base}_{k}");
+            k += 1;
+        }
+        out.push(name);
+    }
+    out
+}
+
 fn prepare_media<const C: usize>(scene: &Scene, lights: &LightSet<C>, report: &mut Report) -> Vec<PreparedMedium<C>> {
     let mut out = Vec::new();
     for (i, m) in scene.media.iter().enumerate() {
@@ -505,6 +712,7 @@ fn prepare_media<const C: usize>(scene: &Scene, lights: &LightSet<C>, report: &m
 
 struct PixelOut<const C: usize> {
     result: RayResult<C>,
+    stage: Option<stage::StageShade<C>>,
     depth: f64,
     hit: bool,
     /// Triangle index + 1 of the surface hit, 0 for none.
@@ -513,14 +721,18 @@ struct PixelOut<const C: usize> {
     in_medium: bool,
 }
 
+#[allow(clippy::too_many_arguments)]
 fn shade_pixel<const C: usize>(
     cam: &CameraRays,
     bvh: Option<&Bvh>,
     media: &[PreparedMedium<C>],
     lights: &LightSet<C>,
+    stage_lights: &stage::StageLights<C>,
     x: f64,
     y: f64,
     tolerance: f64,
+    per_light: &mut [[f64; 3]; stage::MAX_LIGHT_LAYERS],
+    to_rgb: &dyn Fn(&[f64; C]) -> [f64; 3],
 ) -> PixelOut<C> {
     let dir = cam.direction(x, y);
     let start = cam.start_distance(dir);
@@ -578,7 +790,21 @@ fn shade_pixel<const C: usize>(
     if !hit {
         result.sun_transmittance = [1.0; C];
     }
+    let stage = if stage_lights.is_empty() || n_active == 0 {
+        None
+    } else {
+        let sh = STAGE_SCRATCH.with(|cell| {
+            let mut scratch = cell.borrow_mut();
+            stage_lights.shade(&ray, media, bvh, tolerance, &mut scratch, per_light, to_rgb)
+        });
+        for c in 0..C {
+            result.inscatter[c] += sh.inscatter[c];
+            result.error[c] += sh.error[c];
+        }
+        Some(sh)
+    };
     PixelOut {
+        stage,
         result,
         depth,
         hit,
@@ -586,6 +812,10 @@ fn shade_pixel<const C: usize>(
         numeric,
         in_medium: n_active > 0,
     }
+}
+
+thread_local! {
+    static STAGE_SCRATCH: std::cell::RefCell<stage::Scratch> = std::cell::RefCell::new(stage::Scratch::default());
 }
 
 /// Several media on one ray: `L = ∫ Σ S_m e^{−Σ τ_m}`, adaptive G7–K15 over
@@ -734,10 +964,11 @@ fn integrate_media<const C: usize>(
     )
 }
 
-fn render_channels<const C: usize>(scene: &Scene, report: &mut Report, progress: Option<Progress<'_>>) -> Images {
+fn render_channels<const C: usize>(scene: &Scene, report: &mut Report, progress: Option<Progress<'_>>) -> Result<Images, RenderError> {
     let t0 = Instant::now();
     let cam = CameraRays::new(&scene.camera);
     let mut lights = prepare_lights::<C>(scene, report);
+    let mut stage_lights = prepare_stage_lights::<C>(scene, report)?;
     let media = prepare_media::<C>(scene, &lights, report);
     report.error.sun_disc_rel = sun_disc_effect(scene, &media, &mut lights, report);
     let tolerance = scene.output.tolerance;
@@ -758,6 +989,26 @@ fn render_channels<const C: usize>(scene: &Scene, report: &mut Report, progress:
         Some(Bvh::build(tris))
     };
     t = report.time("bvh", t);
+    if !stage_lights.is_empty() {
+        prepare_stage_shadows(scene, &mut stage_lights, report);
+        if media.is_empty() {
+            report
+                .plan
+                .left_out("stage lights' in-scatter", "no media: light is scattered only by a medium");
+        }
+        t = report.time("shadow_volumes", t);
+    }
+    let n_stage = stage_lights.len().min(stage::MAX_LIGHT_LAYERS);
+    let want_per_light = scene.output.layers.contains(&LayerKind::InscatterPerLight) && n_stage > 0;
+    let to_rgb = |v: &[f64; C]| -> [f64; 3] {
+        if C == 3 {
+            [v[0], v[1], v[2]]
+        } else {
+            let mut buf = [0.0; SPECTRAL_SAMPLES];
+            buf.copy_from_slice(&v[..SPECTRAL_SAMPLES]);
+            spectrum::spectrum_to_rec709(&buf)
+        }
+    };
 
     let (w, h) = (cam.width, cam.height);
     let n = w * h;
@@ -767,7 +1018,19 @@ fn render_channels<const C: usize>(scene: &Scene, report: &mut Report, progress:
     let abs_weights = if spectral { Some(abs_rgb_weights()) } else { None };
     // One view ray, reduced to RGB (identity for C = 3).
     let sample = |x: f64, y: f64| -> Sample {
-        let p = shade_pixel(&cam, bvh.as_ref(), &media, &lights, x, y, tolerance);
+        let mut per_light = [[0.0; 3]; stage::MAX_LIGHT_LAYERS];
+        let p = shade_pixel(
+            &cam,
+            bvh.as_ref(),
+            &media,
+            &lights,
+            &stage_lights,
+            x,
+            y,
+            tolerance,
+            &mut per_light,
+            &to_rgb,
+        );
         let (l, t, st, e) = if spectral {
             let mut buf = [0.0; SPECTRAL_SAMPLES];
             buf.copy_from_slice(&p.result.inscatter);
@@ -795,7 +1058,11 @@ fn render_channels<const C: usize>(scene: &Scene, report: &mut Report, progress:
         // Closed forms carry their rounding bound as a relative constant; only
         // numeric pixels need a division.
         let mut rel = p.result.rel_bound;
-        if p.numeric.is_some() {
+        let numeric = match (p.numeric, &p.stage) {
+            (n, Some(sh)) if sh.segments > 0 => Some(n.unwrap_or(true) && sh.converged),
+            (n, _) => n,
+        };
+        if numeric.is_some() {
             for c in 0..3 {
                 if l[c].abs() > 0.0 {
                     rel = rel.max(e[c] / l[c].abs());
@@ -811,8 +1078,13 @@ fn render_channels<const C: usize>(scene: &Scene, report: &mut Report, progress:
             depth: p.depth,
             hit: p.hit,
             surface: p.surface,
-            numeric: p.numeric,
+            numeric,
             in_medium: p.in_medium,
+            lights: per_light,
+            stage_segments: p.stage.map_or(0, |s| s.segments),
+            stage_skipped: p.stage.map_or(0, |s| s.lights_skipped),
+            stage_shadow_rays: p.stage.map_or(0, |s| s.shadow_rays),
+            stage_clamped: p.stage.is_some_and(|s| s.clamped),
         }
     };
 
@@ -827,7 +1099,7 @@ fn render_channels<const C: usize>(scene: &Scene, report: &mut Report, progress:
     let mut error = vec![[0f32; 3]; if want_error { n } else { h }];
     let (sun_chunk, err_chunk) = (if want_sun_t { w } else { 1 }, if want_error { w } else { 1 });
     let done = AtomicUsize::new(0);
-    let row_stats: Vec<RowStats> = inscatter
+    let row_stats: Vec<(RowStats, Vec<[f32; 3]>)> = inscatter
         .par_chunks_mut(w)
         .zip(transmittance.par_chunks_mut(w))
         .zip(depth.par_chunks_mut(w))
@@ -837,8 +1109,14 @@ fn render_channels<const C: usize>(scene: &Scene, report: &mut Report, progress:
         .enumerate()
         .map(|(row, (((((l_row, t_row), d_row), id_row), s_row), e_row))| {
             let mut st = RowStats::default();
+            let mut light_row = if want_per_light { vec![[0f32; 3]; n_stage * w] } else { Vec::new() };
             for col in 0..w {
                 let s = sample(col as f64 + 0.5, row as f64 + 0.5);
+                if want_per_light {
+                    for k in 0..n_stage {
+                        light_row[k * w + col] = s.lights[k].map(|v| v as f32);
+                    }
+                }
                 l_row[col] = s.l.map(|v| v as f32);
                 t_row[col] = s.t.map(|v| v.clamp(0.0, 1.0) as f32);
                 d_row[col] = if s.hit { s.depth as f32 } else { DEPTH_NO_HIT };
@@ -855,12 +1133,22 @@ fn render_channels<const C: usize>(scene: &Scene, report: &mut Report, progress:
             if let Some(cb) = progress {
                 cb(d, h);
             }
-            st
+            (st, light_row)
         })
         .collect();
     let mut stats = RowStats::default();
-    for r in &row_stats {
+    let mut light_inscatter: Vec<Vec<[f32; 3]>> = if want_per_light {
+        vec![vec![[0f32; 3]; n]; n_stage]
+    } else {
+        Vec::new()
+    };
+    for (row, (r, light_row)) in row_stats.iter().enumerate() {
         stats.merge(r);
+        if want_per_light {
+            for (k, img) in light_inscatter.iter_mut().enumerate() {
+                img[row * w..(row + 1) * w].copy_from_slice(&light_row[k * w..(k + 1) * w]);
+            }
+        }
     }
     t = report.time("render", t);
 
@@ -986,6 +1274,9 @@ fn render_channels<const C: usize>(scene: &Scene, report: &mut Report, progress:
         for (i, s, err, per_axis) in &filtered {
             edge.samples += (per_axis * per_axis) as u64;
             inscatter[*i] = s.l.map(|v| v as f32);
+            for (k, img) in light_inscatter.iter_mut().enumerate() {
+                img[*i] = s.lights[k].map(|v| v as f32);
+            }
             transmittance[*i] = s.t.map(|v| v.clamp(0.0, 1.0) as f32);
             if want_sun_t {
                 sun_t[*i] = s.st.map(|v| v.clamp(0.0, 1.0) as f32);
@@ -1080,7 +1371,15 @@ fn render_channels<const C: usize>(scene: &Scene, report: &mut Report, progress:
     if !want_error {
         error = Vec::new();
     }
-    Images {
+    if !stage_lights.is_empty() {
+        report_stage(&stage_lights, &stats, report);
+    }
+    let light_layer_names = if want_per_light {
+        light_layer_names(&stage_lights.names()[..n_stage])
+    } else {
+        Vec::new()
+    };
+    Ok(Images {
         width: w,
         height: h,
         inscatter,
@@ -1089,7 +1388,9 @@ fn render_channels<const C: usize>(scene: &Scene, report: &mut Report, progress:
         sun_transmittance: sun_t,
         error,
         layers: scene.output.layers.clone(),
-    }
+        light_inscatter,
+        light_layer_names,
+    })
 }
 
 /// A centre sample as stored in the images: (L, T, surface id).
@@ -1098,6 +1399,11 @@ type CentreSample = ([f32; 3], [f32; 3], u32);
 /// Per-row counts and error maxima of pass 1.
 #[derive(Debug, Default, Clone, Copy)]
 struct RowStats {
+    stage_segments: u64,
+    stage_skipped: u64,
+    stage_shadow_rays: u64,
+    stage_clamped: u64,
+    stage_rays: u64,
     hits: u64,
     vacuum: u64,
     numeric: u64,
@@ -1114,6 +1420,11 @@ fn nan_max(a: f64, b: f64) -> f64 {
 
 impl RowStats {
     fn add(&mut self, s: &Sample) {
+        self.stage_segments += u64::from(s.stage_segments);
+        self.stage_skipped += u64::from(s.stage_skipped);
+        self.stage_shadow_rays += u64::from(s.stage_shadow_rays);
+        self.stage_clamped += s.stage_clamped as u64;
+        self.stage_rays += (s.stage_segments > 0) as u64;
         self.hits += s.hit as u64;
         self.vacuum += (!s.in_medium) as u64;
         if let Some(conv) = s.numeric {
@@ -1126,6 +1437,11 @@ impl RowStats {
         self.max_rel = nan_max(self.max_rel, s.rel);
     }
     fn merge(&mut self, o: &RowStats) {
+        self.stage_segments += o.stage_segments;
+        self.stage_skipped += o.stage_skipped;
+        self.stage_shadow_rays += o.stage_shadow_rays;
+        self.stage_clamped += o.stage_clamped;
+        self.stage_rays += o.stage_rays;
         self.hits += o.hits;
         self.vacuum += o.vacuum;
         self.numeric += o.numeric;
@@ -1139,6 +1455,12 @@ impl RowStats {
 /// One view-ray sample reduced to RGB.
 #[derive(Debug, Clone, Copy, Default)]
 struct Sample {
+    /// Per stage light in-scatter, RGB (first [`stage::MAX_LIGHT_LAYERS`] lights).
+    lights: [[f64; 3]; stage::MAX_LIGHT_LAYERS],
+    stage_segments: u32,
+    stage_skipped: u32,
+    stage_shadow_rays: u32,
+    stage_clamped: bool,
     l: [f64; 3],
     t: [f64; 3],
     st: [f64; 3],
@@ -1198,6 +1520,11 @@ fn filter_pixel(
                     acc.t[c] += wgt * s.t[c];
                     acc.st[c] += wgt * s.st[c];
                     acc.e[c] += wgt * s.e[c];
+                }
+                for (a, v) in acc.lights.iter_mut().zip(&s.lights) {
+                    for c in 0..3 {
+                        a[c] += wgt * v[c];
+                    }
                 }
                 acc.numeric = match (acc.numeric, s.numeric) {
                     (Some(a), Some(b)) => Some(a && b),
