@@ -18,6 +18,7 @@ VPY=.venv/bin/python
 "$VPY" -m pip install --quiet --upgrade pip
 echo "== building and installing tyndall (Rust core + Python package)"
 "$VPY" -m pip install --quiet ".[test]"
+"$VPY" -m pip install --quiet ./usd
 
 if [ "$job" = demo ]; then
   echo "== tyndall demo"

@@ -1,0 +1,592 @@
+"""USD interchange (usd/, package tyndall_usd): stage → scene, results layer, Blender's exporter.
+
+The bpy tests run Blender's Python in a subprocess (bpy bundles its own USD libraries):
+set TYNDALL_BPY_PYTHON to a Python with bpy 5.0.x; by default the test Python itself is
+used if it can import bpy, otherwise those tests are skipped. The Blender fixture
+(tests/data/usd/blender_scene.usda + .json) is read without bpy.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+pytest.importorskip("pxr")
+tyndall_usd = pytest.importorskip("tyndall_usd")
+
+import tyndall  # noqa: E402
+from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux, UsdRender  # noqa: E402
+from tyndall_usd import UsdSceneError, convert_stage, read_results_layer, write_results_layer  # noqa: E402
+from tyndall_usd._geom import rotate_wxyz  # noqa: E402
+
+DATA = Path(__file__).parent / "data" / "usd"
+TOL = 1e-5
+
+
+def _close(a: Any, b: Any, tol: float = TOL) -> bool:
+    if isinstance(a, (list, tuple)):
+        return len(a) == len(b) and all(_close(x, y, tol) for x, y in zip(a, b, strict=True))
+    return math.isclose(float(a), float(b), rel_tol=tol, abs_tol=tol)
+
+
+def _stage(tmp_path: Path, up: str = "Z", mpu: float = 1.0, name: str = "s.usda") -> Usd.Stage:
+    stage = Usd.Stage.CreateNew(str(tmp_path / name))
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.z if up == "Z" else UsdGeom.Tokens.y)
+    UsdGeom.SetStageMetersPerUnit(stage, mpu)
+    stage.SetDefaultPrim(UsdGeom.Xform.Define(stage, "/World").GetPrim())
+    cam = UsdGeom.Camera.Define(stage, "/World/Cam")
+    cam.CreateFocalLengthAttr(0.5)
+    cam.CreateHorizontalApertureAttr(0.36)
+    cam.CreateVerticalApertureAttr(0.2025)
+    UsdGeom.XformCommonAPI(cam).SetTranslate(Gf.Vec3d(0, -10, 2))
+    return stage
+
+
+def _xform(prim: Usd.Prim, translate: tuple[float, ...], rotate: tuple[float, ...], scale: float = 1.0) -> None:
+    api = UsdGeom.XformCommonAPI(prim)
+    api.SetTranslate(Gf.Vec3d(*translate))
+    api.SetRotate(Gf.Vec3f(*rotate), UsdGeom.XformCommonAPI.RotationOrderXYZ)
+    api.SetScale(Gf.Vec3f(scale, scale, scale))
+
+
+def _world_dir(stage: Usd.Stage, path: str, local: tuple[float, float, float]) -> list[float]:
+    m = UsdGeom.Xformable(stage.GetPrimAtPath(path)).ComputeLocalToWorldTransform(Usd.TimeCode.Default())
+    d = m.TransformDir(Gf.Vec3d(*local)).GetNormalized()
+    return [d[0], d[1], d[2]]
+
+
+def _validate(scene: dict[str, Any]) -> None:
+    """The scene loads in Tyndall (SceneFormatError names the field otherwise)."""
+    tyndall.as_scene(scene)
+
+
+# ------------------------------------------------------------------ per light type
+
+
+def test_point_light(tmp_path: Path) -> None:
+    stage = _stage(tmp_path)
+    rig = UsdGeom.Xform.Define(stage, "/World/Rig")
+    _xform(rig.GetPrim(), (1, 2, 3), (10, 20, 30), scale=2.0)
+    light = UsdLux.SphereLight.Define(stage, "/World/Rig/Lamp")
+    _xform(light.GetPrim(), (0.5, 0, 0), (0, 15, 0))
+    light.CreateIntensityAttr(100.0)
+    light.CreateExposureAttr(1.0)
+    light.CreateColorAttr(Gf.Vec3f(1.0, 0.5, 0.25))
+    light.CreateRadiusAttr(0.1)
+    light.CreateNormalizeAttr(True)
+    conv = convert_stage(stage)
+    (pt,) = conv.scene["lights"]
+    assert pt["type"] == "point" and pt["name"] == "Lamp"
+    assert _close(pt["power_w"], 100.0 * math.pi * 2.0)
+    assert _close(pt["color"], [1.0, 0.5, 0.25])
+    assert _close(pt["radius_m"], 0.2)  # scaled by the parent's scale 2
+    m = UsdGeom.Xformable(light).ComputeLocalToWorldTransform(Usd.TimeCode.Default())
+    assert _close(pt["position"], list(m.ExtractTranslation()))
+    q = pt["orientation"]["quaternion_wxyz"]
+    assert _close(rotate_wxyz(q, (0, 0, -1)), _world_dir(stage, "/World/Rig/Lamp", (0, 0, -1)))
+    assert _close(rotate_wxyz(q, (1, 0, 0)), _world_dir(stage, "/World/Rig/Lamp", (1, 0, 0)))
+    assert conv.light_prims == ["/World/Rig/Lamp"] and conv.skipped == []
+    _validate(conv.scene)
+
+
+def test_spot_light_with_ies(tmp_path: Path) -> None:
+    stage = _stage(tmp_path)
+    (tmp_path / "ies").mkdir()
+    (tmp_path / "ies" / "beam.ies").write_text("IESNA:LM-63-2002\nTILT=NONE\n")
+    light = UsdLux.SphereLight.Define(stage, "/World/Spot")
+    _xform(light.GetPrim(), (0, 0, 5), (30, 0, 45))
+    light.CreateIntensityAttr(1000.0 / math.pi)
+    light.CreateColorAttr(Gf.Vec3f(0.2, 0.4, 1.0))
+    light.CreateRadiusAttr(0.0)
+    light.CreateTreatAsPointAttr(True)
+    shaping = UsdLux.ShapingAPI.Apply(light.GetPrim())
+    shaping.CreateShapingConeAngleAttr(25.0)
+    shaping.CreateShapingConeSoftnessAttr(0.4)
+    shaping.CreateShapingIesFileAttr(Sdf.AssetPath("./ies/beam.ies"))
+    light.GetPrim().CreateAttribute("tyndall:ies:strength", Sdf.ValueTypeNames.Double).Set(0.5)
+    stage.Save()
+    conv = convert_stage(str(tmp_path / "s.usda"))
+    (spot,) = conv.scene["lights"]
+    assert spot["type"] == "spot"
+    assert _close(spot["power_w"], 1000.0)
+    assert _close(spot["spot_size_deg"], 50.0) and _close(spot["spot_blend"], 0.4)
+    assert spot["radius_m"] == 0.0
+    assert spot["ies"] == {"file": str((tmp_path / "ies" / "beam.ies").resolve()), "strength": 0.5}
+    q = spot["orientation"]["quaternion_wxyz"]
+    assert _close(rotate_wxyz(q, (0, 0, -1)), _world_dir(stage, "/World/Spot", (0, 0, -1)))
+    _validate(conv.scene)
+
+
+def test_shaping_beyond_a_blender_spot_is_a_point_with_usd_shaping(tmp_path: Path) -> None:
+    stage = _stage(tmp_path)
+    light = UsdLux.SphereLight.Define(stage, "/World/Wide")
+    shaping = UsdLux.ShapingAPI.Apply(light.GetPrim())
+    shaping.CreateShapingConeAngleAttr(120.0)
+    shaping.CreateShapingConeSoftnessAttr(0.2)
+    shaping.CreateShapingFocusAttr(2.0)
+    (pt,) = convert_stage(stage).scene["lights"]
+    assert pt["type"] == "point"
+    dist = pt["distribution"]
+    assert dist["type"] == "usd_shaping" and dist["cone_angle_deg"] == 120.0 and dist["focus"] == 2.0
+    assert _close(dist["cone_softness"], 0.2)
+    _validate(convert_stage(stage).scene)
+
+
+def test_sun_light(tmp_path: Path) -> None:
+    stage = _stage(tmp_path)
+    sun = UsdLux.DistantLight.Define(stage, "/World/Sun")
+    _xform(sun.GetPrim(), (0, 0, 10), (40, 0, 120))
+    sun.CreateIntensityAttr(2.5)
+    sun.CreateAngleAttr(0.3)
+    sun.CreateColorAttr(Gf.Vec3f(1.0, 0.9, 0.8))
+    (s,) = convert_stage(stage).scene["lights"]
+    assert s["type"] == "sun"
+    assert _close(s["strength_w_m2"], 10.0)  # Blender: intensity = Strength / 4
+    assert _close(s["angular_diameter_deg"], 0.6)  # Blender: angle = Angle / 2
+    assert _close(s["direction_to_sun"], _world_dir(stage, "/World/Sun", (0, 0, 1)))
+    assert _close(s["color"], [1.0, 0.9, 0.8])
+    _validate(convert_stage(stage).scene)
+
+
+def test_color_temperature_outside_blender_exports(tmp_path: Path) -> None:
+    stage = _stage(tmp_path)
+    light = UsdLux.SphereLight.Define(stage, "/World/Warm")
+    light.CreateEnableColorTemperatureAttr(True)
+    light.CreateColorTemperatureAttr(3000.0)
+    (pt,) = convert_stage(stage).scene["lights"]
+    assert _close(pt["color"], list(UsdLux.BlackbodyTemperatureAsRgb(3000.0)))
+
+
+def test_untextured_dome_is_ambient(tmp_path: Path) -> None:
+    stage = _stage(tmp_path)
+    dome = UsdLux.DomeLight.Define(stage, "/World/Env")
+    dome.CreateIntensityAttr(0.25)
+    dome.CreateColorAttr(Gf.Vec3f(0.5, 0.6, 1.0))
+    (amb,) = convert_stage(stage).scene["lights"]
+    assert amb == {"type": "ambient", "name": "Env", "color": [0.5, 0.6000000238418579, 1.0], "radiance": 0.25}
+
+
+def test_y_up_and_meters_per_unit(tmp_path: Path) -> None:
+    stage = _stage(tmp_path, up="Y", mpu=0.01)
+    light = UsdLux.SphereLight.Define(stage, "/World/Lamp")
+    _xform(light.GetPrim(), (0, 100, 0), (0, 0, 0))  # 1 m up in a Y-up centimetre stage
+    light.CreateRadiusAttr(5.0)
+    cam = UsdGeom.Camera(stage.GetPrimAtPath("/World/Cam"))
+    cam.GetFocalLengthAttr().Set(50.0)  # tenths of a cm = mm
+    cam.GetHorizontalApertureAttr().Set(36.0)
+    cam.GetVerticalApertureAttr().Set(24.0)
+    cam.CreateClippingRangeAttr(Gf.Vec2f(10.0, 10000.0))
+    UsdGeom.XformCommonAPI(cam).SetTranslate(Gf.Vec3d(0, 0, 1000))  # 10 m towards the viewer (−Y in Z-up)
+    scene = convert_stage(stage).scene
+    (pt,) = scene["lights"]
+    assert _close(pt["position"], [0, 0, 1]) and _close(pt["radius_m"], 0.05)
+    # The light's −Z (towards −Z_usd = +Y in Tyndall) follows the up-axis rotation.
+    assert _close(rotate_wxyz(pt["orientation"]["quaternion_wxyz"], (0, 0, -1)), [0, 1, 0])
+    c = scene["camera"]
+    assert _close(c["position"], [0, -10, 0])
+    assert _close(c["focal_length_mm"], 50.0) and _close(c["sensor_width_mm"], 36.0)
+    assert _close(c["clip_start_m"], 0.1) and _close(c["clip_end_m"], 100.0)
+    assert _close(rotate_wxyz(c["orientation"]["quaternion_wxyz"], (0, 0, -1)), [0, 1, 0])
+    assert _close(rotate_wxyz(c["orientation"]["quaternion_wxyz"], (0, 1, 0)), [0, 0, 1])
+    assert c["resolution"] == [1920, 1280]
+    _validate(scene)
+
+
+def test_camera_shift_resolution_and_render_settings(tmp_path: Path) -> None:
+    stage = _stage(tmp_path)
+    cam = UsdGeom.Camera(stage.GetPrimAtPath("/World/Cam"))
+    cam.CreateHorizontalApertureOffsetAttr(0.036)
+    cam.CreateVerticalApertureOffsetAttr(-0.018)
+    rs = UsdRender.Settings.Define(stage, "/Render/Settings")
+    rs.CreateResolutionAttr(Gf.Vec2i(640, 360))
+    rs.CreateCameraRel().SetTargets([cam.GetPath()])
+    UsdGeom.Camera.Define(stage, "/World/Other")
+    conv = convert_stage(stage)
+    c = conv.scene["camera"]
+    assert c["resolution"] == [640, 360] and c["sensor_fit"] == "horizontal"
+    assert _close(c["focal_length_mm"], 50.0) and _close(c["sensor_width_mm"], 36.0)
+    assert _close(c["shift_x"], 0.1) and _close(c["shift_y"], -0.05)
+    assert {"prim": "/World/Other", "reason": "camera not chosen by /Render/Settings.camera"} in conv.skipped
+    _validate(conv.scene)
+
+
+def test_mesh_triangulation(tmp_path: Path) -> None:
+    stage = _stage(tmp_path)
+    mesh = UsdGeom.Mesh.Define(stage, "/World/L")
+    # An L-shaped (concave) hexagon of area 3, a triangle, and a quad that is a hole.
+    pts = [(0, 0, 0), (2, 0, 0), (2, 1, 0), (1, 1, 0), (1, 2, 0), (0, 2, 0), (5, 5, 0), (6, 5, 0), (5, 6, 0)]
+    mesh.CreatePointsAttr([Gf.Vec3f(*p) for p in pts])
+    mesh.CreateFaceVertexCountsAttr([6, 3, 4])
+    mesh.CreateFaceVertexIndicesAttr([0, 1, 2, 3, 4, 5, 6, 7, 8, 0, 1, 2, 3])
+    mesh.CreateHoleIndicesAttr([2])
+    mesh.CreateOrientationAttr(UsdGeom.Tokens.leftHanded)
+    _xform(mesh.GetPrim(), (1, 2, 3), (0, 0, 90), scale=2.0)
+    UsdGeom.Mesh.Define(stage, "/World/Empty")
+    conv = convert_stage(stage)
+    (m,) = conv.scene["meshes"]
+    assert len(m["triangles"]) == 5
+    p = m["positions"]
+    area = 0.0
+    for a, b, c in m["triangles"]:
+        ab = [p[b][i] - p[a][i] for i in range(3)]
+        ac = [p[c][i] - p[a][i] for i in range(3)]
+        nz = ab[0] * ac[1] - ab[1] * ac[0]
+        assert nz < 0.0  # left-handed faces flipped: clockwise seen from +Z
+        area += -nz / 2.0
+    assert _close(area, 3.5)
+    mat = m["transform"]["matrix"]
+    assert _close(mat[0], [0, -2, 0, 1]) and _close(mat[1], [2, 0, 0, 2]) and _close(mat[2], [0, 0, 2, 3])
+    assert {"prim": "/World/Empty", "reason": "mesh with no faces"} in conv.skipped
+    _validate(conv.scene)
+
+
+def test_unusable_prims_are_listed(tmp_path: Path) -> None:
+    stage = _stage(tmp_path)
+    UsdLux.RectLight.Define(stage, "/World/Rect")
+    UsdLux.DiskLight.Define(stage, "/World/Disk")
+    UsdLux.CylinderLight.Define(stage, "/World/Cyl")
+    stage.DefinePrim("/World/Smoke", "Volume")
+    UsdGeom.Sphere.Define(stage, "/World/Ball")
+    hidden = UsdLux.SphereLight.Define(stage, "/World/Hidden")
+    hidden.CreateVisibilityAttr(UsdGeom.Tokens.invisible)
+    odd = UsdLux.SphereLight.Define(stage, "/World/OddIes")
+    UsdLux.ShapingAPI.Apply(odd.GetPrim()).CreateShapingIesFileAttr(Sdf.AssetPath(str(tmp_path / "x.ies")))
+    odd.GetPrim().GetAttribute("inputs:shaping:ies:angleScale").Set(0.5)
+    conv = convert_stage(stage)
+    listed = {s["prim"]: s["reason"] for s in conv.skipped}
+    assert set(listed) == {
+        "/World/Rect",
+        "/World/Disk",
+        "/World/Cyl",
+        "/World/Smoke",
+        "/World/Ball",
+        "/World/Hidden",
+        "/World/OddIes",
+    }
+    assert "RectLight" in listed["/World/Rect"] and "Volume" in listed["/World/Smoke"]
+    assert "angleScale" in listed["/World/OddIes"]
+    assert conv.scene["lights"] == []
+
+
+def _bad(tmp_path: Path, case: str) -> Usd.Stage:
+    stage = _stage(tmp_path)
+    light = UsdLux.SphereLight.Define(stage, "/World/Lamp")
+    if case == "nan":
+        light.CreateIntensityAttr(float("nan"))
+    elif case == "radius":
+        light.CreateRadiusAttr(-1.0)
+    elif case == "cone":
+        UsdLux.ShapingAPI.Apply(light.GetPrim()).CreateShapingConeAngleAttr(200.0)
+    elif case == "softness":
+        UsdLux.ShapingAPI.Apply(light.GetPrim()).CreateShapingConeSoftnessAttr(1.5)
+        light.GetPrim().GetAttribute("inputs:shaping:cone:angle").Set(30.0)
+    elif case == "scale":
+        UsdGeom.XformCommonAPI(light).SetScale(Gf.Vec3f(1, 0, 1))
+    elif case == "ies":
+        UsdLux.ShapingAPI.Apply(light.GetPrim()).CreateShapingIesFileAttr(Sdf.AssetPath("./missing.ies"))
+    elif case == "color":
+        light.CreateColorAttr(Gf.Vec3f(1, -0.5, 1))
+    elif case == "medium":
+        stage.DefinePrim("/World/Haze").CreateAttribute("tyndall:medium:type", Sdf.ValueTypeNames.String).Set("fog")
+    return stage
+
+
+@pytest.mark.parametrize(
+    ("case", "attribute"),
+    [
+        ("nan", "inputs:intensity"),
+        ("radius", "inputs:radius"),
+        ("cone", "inputs:shaping:cone:angle"),
+        ("softness", "inputs:shaping:cone:softness"),
+        ("scale", "xformOpOrder"),
+        ("ies", "inputs:shaping:ies:file"),
+        ("color", "inputs:color"),
+        ("medium", "tyndall:medium:type"),
+    ],
+)
+def test_malformed_stage_names_prim_and_attribute(tmp_path: Path, case: str, attribute: str) -> None:
+    stage = _bad(tmp_path, case)
+    with pytest.raises(UsdSceneError) as err:
+        convert_stage(stage)
+    prim = "/World/Haze" if case == "medium" else "/World/Lamp"
+    assert err.value.prim == prim and err.value.attribute == attribute
+    assert str(err.value).startswith(f"{prim}.{attribute}: ")
+
+
+def test_no_camera_and_two_cameras(tmp_path: Path) -> None:
+    stage = _stage(tmp_path)
+    UsdGeom.Camera.Define(stage, "/World/Cam2")
+    with pytest.raises(UsdSceneError, match="several cameras"):
+        convert_stage(stage)
+    settings = stage.DefinePrim("/World/TyndallSettings")
+    settings.CreateRelationship("tyndall:output:camera").SetTargets([Sdf.Path("/World/Cam2")])
+    assert convert_stage(stage).skipped == [
+        {"prim": "/World/Cam", "reason": "camera not chosen by /World/TyndallSettings.tyndall:output:camera"}
+    ]
+    for path in ("/World/Cam", "/World/Cam2", "/World/TyndallSettings"):
+        stage.RemovePrim(path)
+    with pytest.raises(UsdSceneError, match="no Camera"):
+        convert_stage(stage)
+
+
+def test_tyndall_attributes_medium_output_sky(tmp_path: Path) -> None:
+    stage = _stage(tmp_path)
+    sun = UsdLux.DistantLight.Define(stage, "/World/Sun")
+    _xform(sun.GetPrim(), (0, 0, 0), (60, 0, 45))
+    box = UsdGeom.Cube.Define(stage, "/World/HazeBox")
+    _xform(box.GetPrim(), (0, 0, 2), (0, 0, 0), scale=3.0)
+    p = box.GetPrim()
+    tok, dbl, d3 = Sdf.ValueTypeNames.Token, Sdf.ValueTypeNames.Double, Sdf.ValueTypeNames.Double3
+    p.CreateAttribute("tyndall:medium:type", tok).Set("homogeneous")
+    p.CreateAttribute("tyndall:medium:scattering", d3).Set(Gf.Vec3d(0.01, 0.02, 0.03))
+    p.CreateAttribute("tyndall:medium:phase", tok).Set("cornette_shanks")
+    p.CreateAttribute("tyndall:medium:phaseG", dbl).Set(0.8)
+    p.CreateAttribute("tyndall:medium:bounds", tok).Set("box")
+    fog = stage.DefinePrim("/World/Fog")
+    fog.CreateAttribute("tyndall:medium:type", tok).Set("height_fog")
+    fog.CreateAttribute("tyndall:medium:scaleHeightM", dbl).Set(20.0)
+    fog.CreateAttribute("tyndall:medium:mieScattering", dbl).Set(0.02)
+    s = stage.DefinePrim("/World/TyndallSettings")
+    s.CreateAttribute("tyndall:output:resolution", Sdf.ValueTypeNames.Int2).Set(Gf.Vec2i(64, 36))
+    s.CreateAttribute("tyndall:output:layers", Sdf.ValueTypeNames.TokenArray).Set(["inscatter", "depth"])
+    s.CreateAttribute("tyndall:output:tolerance", dbl).Set(1e-3)
+    s.CreateAttribute("tyndall:sky:enabled", Sdf.ValueTypeNames.Bool).Set(True)
+    s.CreateAttribute("tyndall:sky:aerosol", dbl).Set(2.0)
+    conv = convert_stage(stage)
+    box_m, fog_m = conv.scene["media"]
+    assert box_m["bounds"] == {"box": {"min": [-3.0, -3.0, -1.0], "max": [3.0, 3.0, 5.0]}}
+    assert box_m["phase"] == {"type": "cornette_shanks", "g": 0.8} and box_m["scattering"] == [0.01, 0.02, 0.03]
+    assert fog_m == {
+        "type": "height_fog",
+        "name": "Fog",
+        "scale_height_m": 20.0,
+        "reference_height_m": 0.0,
+        "mie": {"scattering": 0.02, "absorption": 0.0, "phase": {"type": "cornette_shanks", "g": 0.76}},
+    }
+    assert conv.scene["meshes"] == []  # the haze box is a medium, not an occluder
+    assert conv.scene["output"] == {"layers": ["inscatter", "depth"], "tolerance": 1e-3}
+    assert conv.scene["camera"]["resolution"] == [64, 36]
+    d = conv.scene["lights"][0]["direction_to_sun"]
+    assert conv.sky is not None and conv.sky.aerosol == 2.0
+    assert _close(conv.sky.sun_elevation_deg, math.degrees(math.asin(d[2])))
+    assert _close(conv.sky.sun_rotation_deg, math.degrees(math.atan2(d[0], d[1])) % 360.0)
+    _validate(conv.scene)
+
+
+# ------------------------------------------------------------------ results layer
+
+
+def test_results_layer_round_trip(tmp_path: Path) -> None:
+    (tmp_path / "volumetrics.exr").write_bytes(b"")
+    (tmp_path / "sky.exr").write_bytes(b"")
+    sun = {
+        "type": "sun",
+        "direction_to_sun": [0.3, -0.5, 0.8],
+        "color": [1.0, 0.9, 0.7],
+        "strength_w_m2": 6.0,
+        "angular_diameter_deg": 0.545,
+    }
+    skipped = [{"prim": "/root/Area/Area", "reason": "RectLight is not supported"}]
+    write_results_layer(
+        tmp_path / "results.usda",
+        sun=sun,
+        sky_texture=tmp_path / "sky.exr",
+        assets={"volumetrics": tmp_path / "volumetrics.exr", "sky": tmp_path / "sky.exr"},
+        layers=["inscatter", "transmittance", "depth"],
+        skipped=skipped,
+    )
+    text = (tmp_path / "results.usda").read_text()
+    assert "@./volumetrics.exr@" in text and 'inputs:texture:format = "latlong"' in text
+    back = read_results_layer(tmp_path / "results.usda")
+    assert back["assets"]["volumetrics"] == str(tmp_path / "volumetrics.exr")
+    assert back["sky"] == {"texture": str(tmp_path / "sky.exr"), "format": "latlong", "strength": 1.0}
+    assert back["layers"] == ["inscatter", "transmittance", "depth"]
+    assert back["skipped"] == ["/root/Area/Area: RectLight is not supported"]
+    s = back["sun"]
+    n = math.sqrt(0.3**2 + 0.5**2 + 0.8**2)
+    assert _close(s["direction_to_sun"], [0.3 / n, -0.5 / n, 0.8 / n])
+    assert _close(s["strength_w_m2"], 6.0) and _close(s["angular_diameter_deg"], 0.545)
+    assert _close(s["color"], [1.0, 0.9, 0.7])
+    # The results layer is itself a USD stage the reader understands (sun back as a sun).
+    stage = Usd.Stage.Open(str(tmp_path / "results.usda"))
+    UsdGeom.Camera.Define(stage, "/Cam")
+    conv = convert_stage(stage)
+    assert _close(conv.scene["lights"][0]["strength_w_m2"], 6.0)
+    assert conv.skipped[0]["prim"] == "/Tyndall/Sky"  # a textured dome is not a uniform ambient light
+
+
+# ------------------------------------------------------------------ Blender's exporter
+
+
+def _check_against_blender(conv: Any, bl: dict[str, Any]) -> None:
+    """Compare the converted scene with the values bpy reported for the same scene."""
+    lights = {x["name"]: x for x in conv.scene["lights"]}
+    assert set(lights) == {"Point", "Spot", "WideSpot", "Sun"}
+    for name, v in bl["lights"].items():
+        if v["type"] == "AREA":
+            assert any(s["prim"].endswith("/" + name) and "RectLight" in s["reason"] for s in conv.skipped)
+            continue
+        lt = lights[name]
+        mw = v["matrix_world"]
+        down = [-mw[i][2] for i in range(3)]
+        n = math.sqrt(sum(x * x for x in down))
+        down = [x / n for x in down]
+        assert _close(lt["color"], v["color"], 1e-6)
+        if v["type"] == "SUN":
+            assert _close(lt["strength_w_m2"], v["energy"], 1e-6)
+            assert _close(lt["angular_diameter_deg"], v["angle_deg"], 1e-5)
+            assert _close(lt["direction_to_sun"], [-x for x in down], 1e-6)
+            continue
+        assert lt["type"] == v["type"].lower()
+        assert _close(lt["power_w"], v["energy"], 1e-6)
+        assert _close(lt["radius_m"], v["radius"], 1e-6)
+        assert _close(lt["position"], [mw[i][3] for i in range(3)], 1e-6)
+        assert _close(rotate_wxyz(lt["orientation"]["quaternion_wxyz"], (0, 0, -1)), down, 1e-6)
+        if v["type"] == "SPOT":
+            assert _close(lt["spot_size_deg"], v["spot_size_deg"], 1e-5)
+            assert _close(lt["spot_blend"], v["spot_blend"], 1e-6)
+    c, bc = conv.scene["camera"], bl["camera"]
+    assert c["resolution"] == bc["resolution"]  # from the tyndall:output:resolution custom property
+    assert _close(c["focal_length_mm"], bc["lens"], 1e-6)
+    assert _close(c["sensor_width_mm"], bc["sensor_width"], 1e-6)  # AUTO fit, landscape: width
+    assert c["sensor_fit"] == "horizontal"
+    assert _close(c["shift_x"], bc["shift_x"], 1e-6) and _close(c["shift_y"], bc["shift_y"], 1e-6)
+    assert _close(c["clip_start_m"], bc["clip_start"], 1e-6) and _close(c["clip_end_m"], bc["clip_end"], 1e-6)
+    mw = bc["matrix_world"]
+    assert _close(c["position"], [mw[i][3] for i in range(3)], 1e-6)
+    q = c["orientation"]["quaternion_wxyz"]
+    for axis in range(3):
+        local = [1.0 if i == axis else 0.0 for i in range(3)]
+        assert _close(rotate_wxyz(q, local), [mw[i][axis] for i in range(3)], 1e-6)
+    meshes = {m["name"]: m for m in conv.scene["meshes"]}
+    by_blender = {"Box": "Cube", "Ground": "Plane", "Disc": "Circle"}
+    for obj, v in bl["meshes"].items():
+        m = meshes[by_blender[obj]]
+        mat = m["transform"]["matrix"]
+        world = [[sum(mat[r][k] * p[k] for k in range(3)) + mat[r][3] for r in range(3)] for p in m["positions"]]
+        assert _close(sorted(world), sorted(v["world_vertices"]), 1e-5)
+        assert len(m["triangles"]) == v["triangles"]
+        area = 0.0  # bpy's loop-triangle areas are in object space
+        loc = m["positions"]
+        for a, b, cc in m["triangles"]:
+            ab = [loc[b][i] - loc[a][i] for i in range(3)]
+            ac = [loc[cc][i] - loc[a][i] for i in range(3)]
+            cr = [ab[1] * ac[2] - ab[2] * ac[1], ab[2] * ac[0] - ab[0] * ac[2], ab[0] * ac[1] - ab[1] * ac[0]]
+            area += math.sqrt(sum(x * x for x in cr)) / 2.0
+        assert _close(area, v["area"], 1e-5)
+    (haze,) = conv.scene["media"]
+    assert haze == {
+        "type": "homogeneous",
+        "name": "Haze",
+        "scattering": 0.02,
+        "absorption": [0.001, 0.002, 0.003],
+        "phase": {"type": "henyey_greenstein", "g": 0.6},
+    }
+    assert conv.scene["output"] == {"layers": ["inscatter", "transmittance", "depth"]}
+    _validate(conv.scene)
+
+
+def test_blender_fixture() -> None:
+    """The .usda Blender 5.0.1 exported (committed) reads back to the bpy values."""
+    conv = convert_stage(DATA / "blender_scene.usda")
+    _check_against_blender(conv, json.loads((DATA / "blender_scene.json").read_text()))
+
+
+def _bpy_python() -> str:
+    exe = os.environ.get("TYNDALL_BPY_PYTHON") or sys.executable
+    try:
+        ok = subprocess.run([exe, "-c", "import bpy"], capture_output=True, timeout=120).returncode == 0
+    except (OSError, subprocess.TimeoutExpired):
+        ok = False
+    if not ok:
+        pytest.skip(f"no bpy in {exe} (set TYNDALL_BPY_PYTHON to a Python with bpy 5.0)")
+    return exe
+
+
+def test_blender_export_live(tmp_path: Path) -> None:
+    """Export with bpy now (subprocess: bpy bundles its own USD) and compare with bpy's values."""
+    exe = _bpy_python()
+    usda, js = tmp_path / "b.usda", tmp_path / "b.json"
+    subprocess.run([exe, str(DATA / "blender_export.py"), str(usda), str(js)], check=True, capture_output=True)
+    bl = json.loads(js.read_text())
+    assert bl["blender"].startswith("5.")
+    _check_against_blender(convert_stage(usda), bl)
+
+
+_IMPORT = """
+import json, math, sys, bpy
+bpy.ops.wm.read_factory_settings(use_empty=True)
+bpy.context.scene.world = bpy.data.worlds.new("W")
+bpy.ops.wm.usd_import(filepath=sys.argv[1])
+sun = [o for o in bpy.data.objects if o.type == "LIGHT"][0]
+mapping = [n for n in bpy.context.scene.world.node_tree.nodes if n.bl_idname == "ShaderNodeMapping"][0]
+rot = list(mapping.inputs["Rotation"].default_value)
+json.dump({"energy": sun.data.energy, "angle_deg": math.degrees(sun.data.angle), "color": list(sun.data.color),
+           "to_sun": list(sun.matrix_world.col[2][:3]), "mapping_rotation": rot}, open(sys.argv[2], "w"))
+"""
+
+
+def test_results_layer_imports_into_blender(tmp_path: Path) -> None:
+    """Blender's USD importer reads our sun and sky back (Blender's own conventions)."""
+    exe = _bpy_python()
+    (tmp_path / "sky.exr").write_bytes(b"")
+    sun = {"direction_to_sun": [0.3, -0.5, 0.8], "color": [1.0, 0.9, 0.7], "strength_w_m2": 6.0}
+    write_results_layer(
+        tmp_path / "r.usda", sun={**sun, "angular_diameter_deg": 0.545}, sky_texture=tmp_path / "sky.exr"
+    )
+    (tmp_path / "imp.py").write_text(_IMPORT)
+    out = tmp_path / "imp.json"
+    subprocess.run([exe, str(tmp_path / "imp.py"), str(tmp_path / "r.usda"), str(out)], check=True, capture_output=True)
+    got = json.loads(out.read_text())
+    n = math.sqrt(0.3**2 + 0.5**2 + 0.8**2)
+    assert _close(got["energy"], 6.0, 1e-5) and _close(got["angle_deg"], 0.545, 1e-4)
+    assert _close(got["color"], [1.0, 0.9, 0.7], 1e-6)
+    assert _close(got["to_sun"], [0.3 / n, -0.5 / n, 0.8 / n], 1e-5)
+    assert _close(got["mapping_rotation"], [0.0, 0.0, 0.0], 1e-5)  # an unrotated Environment Texture
+
+
+# ------------------------------------------------------------------ CLI
+
+
+def test_cli_renders_a_usd_stage(tmp_path: Path) -> None:
+    cli = pytest.importorskip("tyndall.cli")
+    if not hasattr(cli, "render_usd"):
+        pytest.skip("installed tyndall predates the USD hook (reinstall: pip install .)")
+    stage = _stage(tmp_path, name="shot.usda")
+    sun = UsdLux.DistantLight.Define(stage, "/World/Sun")
+    _xform(sun.GetPrim(), (0, 0, 0), (50, 0, 30))
+    sun.CreateIntensityAttr(1.0)  # UsdLux's fallback for a DistantLight is 50000
+    UsdLux.RectLight.Define(stage, "/World/Rect")
+    s = stage.DefinePrim("/World/TyndallSettings")
+    s.CreateAttribute("tyndall:output:resolution", Sdf.ValueTypeNames.Int2).Set(Gf.Vec2i(32, 18))
+    s.CreateAttribute("tyndall:medium:type", Sdf.ValueTypeNames.Token).Set("homogeneous")
+    s.CreateAttribute("tyndall:medium:scattering", Sdf.ValueTypeNames.Double).Set(0.01)
+    stage.Save()
+    out = tmp_path / "out"
+    rc = cli.render_usd([str(tmp_path / "shot.usda"), "--out", str(out), "--quiet"])
+    assert rc == 0
+    assert (out / "volumetrics.exr").is_file() and (out / "scene.json").is_file()
+    report = json.loads((out / "volumetrics.report.json").read_text())
+    assert report["usd"]["skipped"] == [{"prim": "/World/Rect", "reason": report["usd"]["skipped"][0]["reason"]}]
+    back = read_results_layer(out / "tyndall_results.usda")
+    assert back["assets"]["volumetrics"] == str(out / "volumetrics.exr")
+    assert back["skipped"][0].startswith("/World/Rect: ")
+    assert _close(back["sun"]["strength_w_m2"], 4.0)  # DistantLight intensity 1 = Blender Strength 4
+
+
+def test_cli_reports_a_malformed_stage(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    cli = pytest.importorskip("tyndall.cli")
+    if not hasattr(cli, "render_usd"):
+        pytest.skip("installed tyndall predates the USD hook (reinstall: pip install .)")
+    stage = _bad(tmp_path, "radius")
+    stage.Save()
+    rc = cli.render_usd([str(tmp_path / "s.usda"), "--out", str(tmp_path / "o")])
+    assert rc == 1
+    assert "/World/Lamp.inputs:radius: must be ≥ 0" in capsys.readouterr().err

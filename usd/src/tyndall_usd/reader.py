@@ -1,0 +1,787 @@
+"""USD stage → Tyndall scene (a dict in the JSON scene format, docs/scene-format.md).
+
+Light units follow Blender 5.0's USD exporter exactly (verified by exporting from
+bpy 5.0.1, see usd/README.md), so that Blender → USD → Tyndall gives the values
+Blender had:
+
+* SphereLight (point, spot): ``power_w = inputs:intensity · π · 2^inputs:exposure``
+* DistantLight (sun): ``strength_w_m2 = inputs:intensity · 4 · 2^inputs:exposure``,
+  ``angular_diameter_deg = 2 · inputs:angle``
+* ShapingAPI: ``spot_size_deg = 2 · inputs:shaping:cone:angle``,
+  ``spot_blend = inputs:shaping:cone:softness``
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux
+
+from . import _geom
+
+NS = "tyndall:"
+
+#: Prim types that only structure or shade a stage; they are passed over without a note.
+_STRUCTURAL = {
+    "",
+    "Xform",
+    "Scope",
+    "Material",
+    "Shader",
+    "NodeGraph",
+    "GeomSubset",
+    "RenderSettings",
+    "RenderProduct",
+    "RenderVar",
+    "RenderPass",
+    "SkelRoot",
+    "Skeleton",
+    "SkelAnimation",
+    "BlendShape",
+}
+_UNSUPPORTED_LIGHTS = {"RectLight", "DiskLight", "CylinderLight", "GeometryLight", "PortalLight", "PluginLight"}
+_PHASES = {"isotropic", "rayleigh", "henyey_greenstein", "cornette_shanks", "nishita_hazy", "nishita_murky"}
+_LAYERS = {"inscatter", "transmittance", "depth", "sun_transmittance", "error"}
+#: Blender's default render width, used when the stage gives no resolution.
+DEFAULT_WIDTH = 1920
+
+
+class UsdSceneError(ValueError):
+    """A stage that cannot be converted; the message names the prim path and the attribute."""
+
+    def __init__(self, prim: str, attribute: str | None, message: str) -> None:
+        self.prim = prim
+        self.attribute = attribute
+        where = f"{prim}.{attribute}" if attribute else prim
+        super().__init__(f"{where}: {message}")
+
+
+@dataclass
+class SkySettings:
+    """A sky world texture to render with ``tyndall.sky`` (from ``tyndall:sky:*``)."""
+
+    sun_elevation_deg: float
+    sun_rotation_deg: float
+    sun_size_deg: float
+    air: float = 1.0
+    aerosol: float = 1.0
+    ozone: float = 1.0
+    altitude_m: float = 0.0
+    width: int = 1024
+    tolerance: float = 1e-3
+    sun_disc: bool = True
+
+    def kwargs(self) -> dict[str, Any]:
+        """Keyword arguments of ``tyndall.sky``."""
+        return {
+            "sun_elevation_deg": self.sun_elevation_deg,
+            "sun_rotation_deg": self.sun_rotation_deg,
+            "air": self.air,
+            "aerosol": self.aerosol,
+            "ozone": self.ozone,
+            "altitude_m": self.altitude_m,
+            "sun_size_deg": self.sun_size_deg,
+            "width": self.width,
+            "tolerance": self.tolerance,
+            "sun_disc": self.sun_disc,
+        }
+
+
+@dataclass
+class Conversion:
+    """Result of :func:`convert_stage`."""
+
+    #: The Tyndall scene (JSON-ready dict, format version 1).
+    scene: dict[str, Any]
+    #: Prims the converter could not use: ``{"prim": path, "reason": text}``.
+    skipped: list[dict[str, str]] = field(default_factory=list)
+    #: Conventions applied and defaults assumed, for the report.
+    notes: list[str] = field(default_factory=list)
+    #: Sky to render, when the stage asks for one (``tyndall:sky:enabled``).
+    sky: SkySettings | None = None
+    #: Prim path of each converted light, in ``scene["lights"]`` order.
+    light_prims: list[str] = field(default_factory=list)
+
+
+# ------------------------------------------------------------------ attribute access
+
+
+def _value(prim: Usd.Prim, name: str, time: Usd.TimeCode) -> Any:
+    """The attribute's value (authored or schema fallback), or ``None``."""
+    attr = prim.GetAttribute(name)
+    if not attr or not attr.IsValid():
+        return None
+    return attr.Get(time)
+
+
+def _authored(prim: Usd.Prim, name: str) -> bool:
+    attr = prim.GetAttribute(name)
+    return bool(attr) and attr.HasAuthoredValue()
+
+
+def _float(prim: Usd.Prim, name: str, time: Usd.TimeCode, default: float | None = None) -> float:
+    v = _value(prim, name, time)
+    if v is None:
+        if default is None:
+            raise UsdSceneError(str(prim.GetPath()), name, "is required")
+        return default
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        raise UsdSceneError(str(prim.GetPath()), name, f"must be a number, got {v!r}")
+    x = float(v)
+    if not math.isfinite(x):
+        raise UsdSceneError(str(prim.GetPath()), name, f"must be finite, got {x}")
+    return x
+
+
+def _vec(prim: Usd.Prim, name: str, time: Usd.TimeCode, n: int, default: Sequence[float]) -> list[float]:
+    v = _value(prim, name, time)
+    if v is None:
+        return [float(x) for x in default]
+    try:
+        out = [float(x) for x in v]
+    except TypeError:
+        raise UsdSceneError(str(prim.GetPath()), name, f"must be {n} numbers, got {v!r}") from None
+    if len(out) != n or not all(math.isfinite(x) for x in out):
+        raise UsdSceneError(str(prim.GetPath()), name, f"must be {n} finite numbers, got {out}")
+    return out
+
+
+def _text(prim: Usd.Prim, name: str, time: Usd.TimeCode, default: str | None = None) -> str:
+    v = _value(prim, name, time)
+    if v is None:
+        if default is None:
+            raise UsdSceneError(str(prim.GetPath()), name, "is required")
+        return default
+    return str(v)
+
+
+def _bool(prim: Usd.Prim, name: str, time: Usd.TimeCode, default: bool) -> bool:
+    v = _value(prim, name, time)
+    if v is None:
+        return default
+    if isinstance(v, (bool, int)):
+        return bool(v)
+    if isinstance(v, str) and v.lower() in {"true", "false", "1", "0"}:
+        return v.lower() in {"true", "1"}
+    raise UsdSceneError(str(prim.GetPath()), name, f"must be a bool, got {v!r}")
+
+
+def _coefficient(prim: Usd.Prim, name: str, time: Usd.TimeCode, default: float | None) -> float | list[float]:
+    """A coefficient in m⁻¹: a number (grey) or three numbers (linear Rec.709 RGB), each ≥ 0."""
+    v = _value(prim, name, time)
+    if v is None:
+        if default is None:
+            raise UsdSceneError(str(prim.GetPath()), name, "is required")
+        return default
+    if isinstance(v, (int, float)) and not isinstance(v, bool):
+        vals = [float(v)]
+    else:
+        try:
+            vals = [float(x) for x in v]
+        except TypeError:
+            raise UsdSceneError(str(prim.GetPath()), name, f"must be a number or 3 numbers, got {v!r}") from None
+        if len(vals) != 3:
+            raise UsdSceneError(str(prim.GetPath()), name, f"must be a number or 3 numbers, got {vals}")
+    for x in vals:
+        if not math.isfinite(x) or x < 0.0:
+            raise UsdSceneError(str(prim.GetPath()), name, f"must be finite and ≥ 0 m⁻¹, got {x}")
+    return vals[0] if len(vals) == 1 else vals
+
+
+def _names(prim: Usd.Prim, name: str, time: Usd.TimeCode) -> list[str] | None:
+    """A token[]/string[] or a comma/space-separated string (Blender custom properties)."""
+    v = _value(prim, name, time)
+    if v is None:
+        return None
+    if isinstance(v, str):
+        return [s for s in v.replace(",", " ").split() if s]
+    return [str(s) for s in v]
+
+
+# ------------------------------------------------------------------ the converter
+
+
+class _Converter:
+    def __init__(self, stage: Usd.Stage, time: Usd.TimeCode) -> None:
+        self.stage = stage
+        self.time = time
+        self.skipped: list[dict[str, str]] = []
+        self.notes: list[str] = []
+        self.untinted: list[str] = []
+        up = UsdGeom.GetStageUpAxis(stage)
+        if up not in (UsdGeom.Tokens.y, UsdGeom.Tokens.z):
+            raise UsdSceneError("/", "upAxis", f"must be Y or Z, got {up!r}")
+        mpu = float(UsdGeom.GetStageMetersPerUnit(stage))
+        if not math.isfinite(mpu) or mpu <= 0.0:
+            raise UsdSceneError("/", "metersPerUnit", f"must be finite and > 0, got {mpu}")
+        self.mpu = mpu
+        self.up = str(up)
+        self.to_world = _geom.stage_to_world(up, mpu)
+        self.xf_cache = UsdGeom.XformCache(time)
+        self.bbox_cache = UsdGeom.BBoxCache(time, [UsdGeom.Tokens.default_, UsdGeom.Tokens.render])
+        self.from_blender = "Blender" in (stage.GetRootLayer().documentation or "")
+        if up == UsdGeom.Tokens.y:
+            self.notes.append("Y-up stage: rotated +90° about X into Tyndall's Z-up world (as Blender imports it)")
+        if mpu != 1.0:
+            self.notes.append(f"metersPerUnit = {mpu}: lengths scaled to metres")
+
+    def skip(self, prim: Usd.Prim, reason: str) -> None:
+        self.skipped.append({"prim": str(prim.GetPath()), "reason": reason})
+
+    # -- transforms
+
+    def world_matrix(self, prim: Usd.Prim) -> Gf.Matrix4d:
+        """Local → Tyndall world (row-vector convention), checked to be finite and invertible."""
+        m = self.xf_cache.GetLocalToWorldTransform(prim) * self.to_world
+        if _geom.is_finite_matrix(m) and abs(_geom.det3(m)) > 1e-300 and m.GetColumn(3) == Gf.Vec4d(0, 0, 0, 1):
+            return m
+        # Name the prim whose own xform ops are at fault.
+        p = prim
+        while p and not p.IsPseudoRoot():
+            xf = UsdGeom.Xformable(p)
+            if xf:
+                local = xf.GetLocalTransformation(self.time)
+                if not _geom.is_finite_matrix(local) or abs(_geom.det3(local)) <= 1e-300:
+                    order = [str(op.GetOpName()) for op in xf.GetOrderedXformOps()]
+                    raise UsdSceneError(
+                        str(p.GetPath()),
+                        "xformOpOrder",
+                        f"non-invertible or non-finite transform (ops {order}, determinant {_geom.det3(local):.3g})",
+                    )
+            p = p.GetParent()
+        raise UsdSceneError(str(prim.GetPath()), "xformOpOrder", "non-invertible, non-finite or projective transform")
+
+    # -- lights
+
+    def light_color(self, prim: Usd.Prim) -> list[float]:
+        path = str(prim.GetPath())
+        color = _vec(prim, "inputs:color", self.time, 3, (1.0, 1.0, 1.0))
+        for c in color:
+            if c < 0.0:
+                raise UsdSceneError(path, "inputs:color", f"components must be ≥ 0, got {color}")
+        if _bool(prim, "inputs:enableColorTemperature", self.time, False):
+            authored = _authored(prim, "inputs:colorTemperature")
+            if self.from_blender and not authored:
+                # Blender 5.0 writes enableColorTemperature = 1 for every light, whether or not
+                # Use Temperature is on, and writes colorTemperature only when it is not 6500 K.
+                self.untinted.append(path)
+            else:
+                t = _float(prim, "inputs:colorTemperature", self.time, 6500.0)
+                if t <= 0.0:
+                    raise UsdSceneError(path, "inputs:colorTemperature", f"must be > 0 K, got {t}")
+                tint = UsdLux.BlackbodyTemperatureAsRgb(t)
+                color = [c * float(k) for c, k in zip(color, tint, strict=True)]
+                self.notes.append(f"{path}: colour multiplied by the {t:g} K blackbody colour {tuple(tint)}")
+        return color
+
+    def intensity_and_exposure(self, prim: Usd.Prim) -> float:
+        path = str(prim.GetPath())
+        intensity = _float(prim, "inputs:intensity", self.time, 1.0)
+        if intensity < 0.0:
+            raise UsdSceneError(path, "inputs:intensity", f"must be ≥ 0, got {intensity}")
+        exposure = _float(prim, "inputs:exposure", self.time, 0.0)
+        return intensity * 2.0**exposure
+
+    def sphere_light(self, prim: Usd.Prim) -> dict[str, Any] | None:
+        path = str(prim.GetPath())
+        m = self.world_matrix(prim)
+        radius = _float(prim, "inputs:radius", self.time, 0.5)
+        if radius < 0.0:
+            raise UsdSceneError(path, "inputs:radius", f"must be ≥ 0, got {radius}")
+        if _bool(prim, "treatAsPoint", self.time, False):
+            radius = 0.0
+        radius_m = radius * _geom.mean_axis_scale(m)
+        power = self.intensity_and_exposure(prim) * math.pi
+        if not _bool(prim, "inputs:normalize", self.time, False) and radius_m > 0.0:
+            # Not normalised: the emission is per unit area (as Blender's importer reads it).
+            power *= 4.0 * math.pi * radius_m * radius_m
+            self.notes.append(f"{path}: inputs:normalize is off: power multiplied by the sphere area 4πr²")
+        pos = m.ExtractTranslation()
+        light: dict[str, Any] = {
+            "name": prim.GetName(),
+            "position": [float(pos[0]), float(pos[1]), float(pos[2])],
+            "orientation": {"quaternion_wxyz": _geom.frame_quaternion(m)},
+            "color": self.light_color(prim),
+            "power_w": power,
+            "radius_m": radius_m,
+        }
+        ies = self.ies(prim)
+        if ies is False:
+            return None
+        if ies:
+            light["ies"] = ies
+
+        has_shaping = prim.HasAPI(UsdLux.ShapingAPI)
+        focus = _float(prim, "inputs:shaping:focus", self.time, 0.0) if has_shaping else 0.0
+        if focus < 0.0:
+            raise UsdSceneError(path, "inputs:shaping:focus", f"must be ≥ 0, got {focus}")
+        if has_shaping and _authored(prim, "inputs:shaping:focusTint"):
+            tint = _vec(prim, "inputs:shaping:focusTint", self.time, 3, (0.0, 0.0, 0.0))
+            if any(t != 0.0 for t in tint) and focus > 0.0:
+                self.skip(prim, "unsupported shaping: inputs:shaping:focusTint (off-axis tint)")
+                return None
+        cone_authored = has_shaping and _authored(prim, "inputs:shaping:cone:angle")
+        if not cone_authored and focus == 0.0:
+            return {"type": "point", **light}
+        angle = _float(prim, "inputs:shaping:cone:angle", self.time, 90.0)
+        if not 0.05 <= angle <= 180.0:
+            raise UsdSceneError(path, "inputs:shaping:cone:angle", f"must be in 0.05..=180 degrees, got {angle}")
+        softness = _float(prim, "inputs:shaping:cone:softness", self.time, 0.0)
+        if not 0.0 <= softness <= 1.0:
+            raise UsdSceneError(path, "inputs:shaping:cone:softness", f"must be in 0..=1, got {softness}")
+        if focus == 0.0 and angle <= 90.0:
+            # Blender's spot: cone angle = Spot Size / 2, softness = Blend.
+            return {"type": "spot", **light, "spot_size_deg": 2.0 * angle, "spot_blend": softness}
+        self.notes.append(
+            f"{path}: shaping (cone {angle:g}°, softness {softness:g}, focus {focus:g}) is not a Blender spot: "
+            "read as a point light with the UsdLux shaping distribution"
+        )
+        light["distribution"] = {
+            "type": "usd_shaping",
+            "cone_angle_deg": min(angle, 180.0),
+            "cone_softness": softness,
+            "focus": focus,
+        }
+        return {"type": "point", **light}
+
+    def ies(self, prim: Usd.Prim) -> dict[str, Any] | None | bool:
+        """The ``ies`` object, ``None`` without a profile, ``False`` if the light must be skipped."""
+        path = str(prim.GetPath())
+        attr = prim.GetAttribute("inputs:shaping:ies:file")
+        if not attr or not attr.HasAuthoredValue():
+            return None
+        asset = attr.Get(self.time)
+        if asset is None or not asset.path:
+            return None
+        scale = _float(prim, "inputs:shaping:ies:angleScale", self.time, 0.0)
+        if scale != 0.0:
+            self.skip(prim, f"unsupported shaping: inputs:shaping:ies:angleScale = {scale:g} (only 0 is supported)")
+            return False
+        resolved = asset.resolvedPath
+        if not resolved or not os.path.isfile(resolved):
+            raise UsdSceneError(path, "inputs:shaping:ies:file", f"IES file {asset.path!r} not found")
+        if _bool(prim, "inputs:shaping:ies:normalize", self.time, False):
+            self.notes.append(f"{path}: inputs:shaping:ies:normalize is ignored (the profile is used as written)")
+        strength = _float(prim, NS + "ies:strength", self.time, 1.0)
+        if strength < 0.0:
+            raise UsdSceneError(path, NS + "ies:strength", f"must be ≥ 0, got {strength}")
+        return {"file": os.path.abspath(resolved), "strength": strength}
+
+    def distant_light(self, prim: Usd.Prim) -> dict[str, Any]:
+        path = str(prim.GetPath())
+        m = self.world_matrix(prim)
+        to_sun = _geom.axis(m, 2).GetNormalized()  # the light travels along its local −Z
+        angle = _float(prim, "inputs:angle", self.time, 0.53)
+        if not 0.0 <= angle <= 90.0:
+            raise UsdSceneError(path, "inputs:angle", f"must be in 0..=90 degrees, got {angle}")
+        return {
+            "type": "sun",
+            "name": prim.GetName(),
+            "direction_to_sun": [float(to_sun[0]), float(to_sun[1]), float(to_sun[2])],
+            "color": self.light_color(prim),
+            "strength_w_m2": self.intensity_and_exposure(prim) * 4.0,
+            "angular_diameter_deg": 2.0 * angle,
+        }
+
+    def dome_light(self, prim: Usd.Prim) -> dict[str, Any] | None:
+        tex = _value(prim, "inputs:texture:file", self.time)
+        if tex is not None and tex.path:
+            self.skip(
+                prim,
+                f"textured DomeLight ({tex.path}): Tyndall's ambient light is uniform (an untextured DomeLight "
+                "is read as an ambient light)",
+            )
+            return None
+        return {
+            "type": "ambient",
+            "name": prim.GetName(),
+            "color": self.light_color(prim),
+            "radiance": self.intensity_and_exposure(prim),
+        }
+
+    # -- meshes
+
+    def mesh(self, prim: Usd.Prim) -> dict[str, Any] | None:
+        path = str(prim.GetPath())
+        mesh = UsdGeom.Mesh(prim)
+        pts = mesh.GetPointsAttr().Get(self.time)
+        counts = mesh.GetFaceVertexCountsAttr().Get(self.time)
+        indices = mesh.GetFaceVertexIndicesAttr().Get(self.time)
+        if not pts or not counts or not indices:
+            self.skip(prim, "mesh with no faces")
+            return None
+        points = np.asarray(pts, dtype=float).reshape(-1, 3)
+        counts_a = np.asarray(counts, dtype=np.int64)
+        idx = np.asarray(indices, dtype=np.int64)
+        if not np.all(np.isfinite(points)):
+            raise UsdSceneError(path, "points", "contains NaN or infinite coordinates")
+        if int(counts_a.sum()) != len(idx) or np.any(counts_a < 0):
+            raise UsdSceneError(path, "faceVertexCounts", f"sum {int(counts_a.sum())} ≠ {len(idx)} face-vertex indices")
+        if len(idx) and (idx.min() < 0 or idx.max() >= len(points)):
+            raise UsdSceneError(path, "faceVertexIndices", f"index out of range for {len(points)} points")
+        holes = set(int(h) for h in (mesh.GetHoleIndicesAttr().Get(self.time) or []))
+        small = int(np.count_nonzero(counts_a < 3))
+        if small:
+            self.notes.append(f"{path}: {small} faces with fewer than 3 vertices left out")
+        tris = _geom.triangulate(points, counts_a, idx, holes)
+        if not tris:
+            self.skip(prim, "mesh with no faces")
+            return None
+        if mesh.GetOrientationAttr().Get(self.time) == UsdGeom.Tokens.leftHanded:
+            tris = [[a, c, b] for a, b, c in tris]
+        m = self.world_matrix(prim)
+        return {
+            "name": prim.GetName(),
+            "positions": points.tolist(),
+            "triangles": tris,
+            "transform": {"matrix": _geom.to_row_major(m)},
+        }
+
+    # -- camera
+
+    def camera(self, prim: Usd.Prim, resolution: list[int] | None) -> dict[str, Any]:
+        path = str(prim.GetPath())
+        cam = UsdGeom.Camera(prim)
+        proj = cam.GetProjectionAttr().Get(self.time)
+        if proj != UsdGeom.Tokens.perspective:
+            raise UsdSceneError(path, "projection", f"only perspective cameras are supported, got {proj!r}")
+        k = 100.0 * self.mpu  # USD camera lengths are in tenths of a scene unit
+        focal = _float(prim, "focalLength", self.time, 50.0) * k
+        h_ap = _float(prim, "horizontalAperture", self.time, 20.955) * k
+        v_ap = _float(prim, "verticalAperture", self.time, 15.2908) * k
+        h_off = _float(prim, "horizontalApertureOffset", self.time, 0.0) * k
+        v_off = _float(prim, "verticalApertureOffset", self.time, 0.0) * k
+        for name, v in (("focalLength", focal), ("horizontalAperture", h_ap), ("verticalAperture", v_ap)):
+            if v <= 0.0:
+                raise UsdSceneError(path, name, f"must be > 0, got {v / k}")
+        if resolution is None:
+            w = DEFAULT_WIDTH
+            resolution = [w, max(1, round(w * v_ap / h_ap))]
+            self.notes.append(
+                f"no resolution on the stage (Blender does not export it): {resolution[0]}×{resolution[1]} "
+                "from the aperture aspect; set tyndall:output:resolution"
+            )
+        img_aspect = resolution[0] / resolution[1]
+        ap_aspect = h_ap / v_ap
+        if abs(img_aspect - ap_aspect) <= 1e-4 * img_aspect:
+            fit = "horizontal" if resolution[0] >= resolution[1] else "vertical"
+        else:
+            # UsdRender's default aspectRatioConformPolicy, expandAperture.
+            fit = "vertical" if img_aspect > ap_aspect else "horizontal"
+            self.notes.append(
+                f"{path}: aperture aspect {ap_aspect:.4g} ≠ image aspect {img_aspect:.4g}: aperture expanded"
+            )
+        side = h_ap if fit == "horizontal" else v_ap
+        near, far = _vec(prim, "clippingRange", self.time, 2, (1.0, 1e6))
+        if near < 0.0 or far <= near:
+            raise UsdSceneError(path, "clippingRange", f"needs 0 ≤ near < far, got ({near}, {far})")
+        m = self.world_matrix(prim)
+        scale = _geom.mean_axis_scale(m)
+        pos = m.ExtractTranslation()
+        return {
+            "type": "perspective",
+            "position": [float(pos[0]), float(pos[1]), float(pos[2])],
+            "orientation": {"quaternion_wxyz": _geom.frame_quaternion(m)},
+            "focal_length_mm": focal,
+            "sensor_width_mm": h_ap,
+            "sensor_height_mm": v_ap,
+            "sensor_fit": fit,
+            "shift_x": h_off / side,
+            "shift_y": v_off / side,
+            "resolution": list(resolution),
+            "clip_start_m": near * scale,
+            "clip_end_m": far * scale if math.isfinite(far) else None,
+        }
+
+    # -- media
+
+    def medium(self, prim: Usd.Prim) -> dict[str, Any]:
+        path = str(prim.GetPath())
+        t = self.time
+        kind = _text(prim, NS + "medium:type", t)
+        name = _text(prim, NS + "medium:name", t, prim.GetName())
+        if kind == "homogeneous":
+            med: dict[str, Any] = {
+                "type": "homogeneous",
+                "name": name,
+                "scattering": _coefficient(prim, NS + "medium:scattering", t, None),
+                "absorption": _coefficient(prim, NS + "medium:absorption", t, 0.0),
+                "phase": self.phase(prim, NS + "medium:phase", "isotropic", None),
+            }
+            bounds = _text(prim, NS + "medium:bounds", t, "world")
+            if bounds == "box":
+                med["bounds"] = {"box": self.box(prim)}
+            elif bounds != "world":
+                raise UsdSceneError(path, NS + "medium:bounds", f"must be 'world' or 'box', got {bounds!r}")
+            return med
+        if kind == "height_fog":
+            med = {
+                "type": "height_fog",
+                "name": name,
+                "scale_height_m": _float(prim, NS + "medium:scaleHeightM", t),
+                "reference_height_m": _float(prim, NS + "medium:referenceHeightM", t, 0.0),
+            }
+            if _value(prim, NS + "medium:rayleighScattering", t) is not None:
+                med["rayleigh"] = {
+                    "scattering": _coefficient(prim, NS + "medium:rayleighScattering", t, None),
+                    "absorption": _coefficient(prim, NS + "medium:rayleighAbsorption", t, 0.0),
+                }
+            if _value(prim, NS + "medium:mieScattering", t) is not None:
+                med["mie"] = {
+                    "scattering": _coefficient(prim, NS + "medium:mieScattering", t, None),
+                    "absorption": _coefficient(prim, NS + "medium:mieAbsorption", t, 0.0),
+                    "phase": self.phase(prim, NS + "medium:miePhase", "cornette_shanks", 0.76),
+                }
+            return med
+        raise UsdSceneError(path, NS + "medium:type", f"must be 'homogeneous' or 'height_fog', got {kind!r}")
+
+    def phase(self, prim: Usd.Prim, name: str, default: str, default_g: float | None) -> dict[str, Any]:
+        kind = _text(prim, name, self.time, default)
+        if kind not in _PHASES:
+            raise UsdSceneError(str(prim.GetPath()), name, f"must be one of {sorted(_PHASES)}, got {kind!r}")
+        if kind in ("henyey_greenstein", "cornette_shanks"):
+            g = _float(prim, name + "G", self.time, default_g if kind == default else None)
+            if not -1.0 < g < 1.0:
+                raise UsdSceneError(str(prim.GetPath()), name + "G", f"must be in (-1, 1), got {g}")
+            return {"type": kind, "g": g}
+        return {"type": kind}
+
+    def box(self, prim: Usd.Prim) -> dict[str, list[float]]:
+        rng = self.bbox_cache.ComputeWorldBound(prim).ComputeAlignedRange()
+        if rng.IsEmpty():
+            raise UsdSceneError(str(prim.GetPath()), NS + "medium:bounds", "'box' needs a prim with geometry (extent)")
+        corners = [self.to_world.Transform(rng.GetCorner(i)) for i in range(8)]
+        lo = [min(float(c[i]) for c in corners) for i in range(3)]
+        hi = [max(float(c[i]) for c in corners) for i in range(3)]
+        return {"min": lo, "max": hi}
+
+    # -- settings
+
+    def settings_prim(self, prims: list[Usd.Prim]) -> Usd.Prim | None:
+        carriers = [
+            p
+            for p in prims
+            if any(a.GetName().startswith((NS + "output:", NS + "sky:")) for a in p.GetAuthoredAttributes())
+            or any(r.GetName().startswith(NS + "output:") for r in p.GetAuthoredRelationships())
+        ]
+        if len(carriers) > 1:
+            paths = ", ".join(str(p.GetPath()) for p in carriers)
+            raise UsdSceneError(
+                str(carriers[1].GetPath()), None, f"tyndall:output/sky settings on several prims: {paths}"
+            )
+        return carriers[0] if carriers else None
+
+    def output(self, prim: Usd.Prim | None) -> dict[str, Any]:
+        if prim is None:
+            return {}
+        path = str(prim.GetPath())
+        t = self.time
+        out: dict[str, Any] = {}
+        layers = _names(prim, NS + "output:layers", t)
+        if layers is not None:
+            bad = [x for x in layers if x not in _LAYERS]
+            if bad or not layers:
+                raise UsdSceneError(
+                    path, NS + "output:layers", f"must be non-empty, from {sorted(_LAYERS)}, got {layers}"
+                )
+            out["layers"] = layers
+        if _value(prim, NS + "output:tolerance", t) is not None:
+            out["tolerance"] = _float(prim, NS + "output:tolerance", t)
+        if _value(prim, NS + "output:threads", t) is not None:
+            out["threads"] = int(_float(prim, NS + "output:threads", t))
+        if _value(prim, NS + "output:spectral", t) is not None:
+            out["spectral"] = _text(prim, NS + "output:spectral", t)
+        return out
+
+    def resolution(self, prim: Usd.Prim | None, render_settings: Usd.Prim | None) -> list[int] | None:
+        for p, name in ((prim, NS + "output:resolution"), (render_settings, "resolution")):
+            if p is None:
+                continue
+            v = _value(p, name, self.time)
+            if v is None or (name == "resolution" and not _authored(p, name)):
+                continue
+            try:
+                res = [int(x) for x in v]
+                ok = len(res) == 2 and all(1 <= x <= 65536 and x == float(y) for x, y in zip(res, v, strict=True))
+            except (TypeError, ValueError):
+                ok = False
+            if not ok:
+                raise UsdSceneError(str(p.GetPath()), name, f"must be two integers in 1..=65536, got {v!r}")
+            return res
+        return None
+
+    def sky(self, prim: Usd.Prim | None, lights: list[dict[str, Any]]) -> SkySettings | None:
+        if prim is None or not _bool(prim, NS + "sky:enabled", self.time, False):
+            return None
+        path = str(prim.GetPath())
+        suns = [x for x in lights if x["type"] == "sun"]
+        if not suns:
+            raise UsdSceneError(path, NS + "sky:enabled", "the sky needs a DistantLight (the sun) on the stage")
+        d = suns[0]["direction_to_sun"]
+        t = self.time
+        s = SkySettings(
+            sun_elevation_deg=math.degrees(math.asin(max(-1.0, min(1.0, d[2])))),
+            sun_rotation_deg=math.degrees(math.atan2(d[0], d[1])) % 360.0,
+            sun_size_deg=suns[0]["angular_diameter_deg"],
+            air=_float(prim, NS + "sky:air", t, 1.0),
+            aerosol=_float(prim, NS + "sky:aerosol", t, 1.0),
+            ozone=_float(prim, NS + "sky:ozone", t, 1.0),
+            altitude_m=_float(prim, NS + "sky:altitudeM", t, 0.0),
+            width=int(_float(prim, NS + "sky:widthPx", t, 1024.0)),
+            tolerance=_float(prim, NS + "sky:tolerance", t, 1e-3),
+            sun_disc=_bool(prim, NS + "sky:sunDisc", t, True),
+        )
+        return s
+
+    # -- the whole stage
+
+    def run(self) -> Conversion:
+        pred = Usd.TraverseInstanceProxies(Usd.PrimDefaultPredicate)
+        prims = list(Usd.PrimRange(self.stage.GetPseudoRoot(), pred))[1:]
+        lights: list[dict[str, Any]] = []
+        light_prims: list[str] = []
+        meshes: list[dict[str, Any]] = []
+        media: list[dict[str, Any]] = []
+        cameras: list[Usd.Prim] = []
+        render_settings: list[Usd.Prim] = []
+        medium_paths: list[Sdf.Path] = []
+        for prim in prims:
+            type_name = str(prim.GetTypeName())
+            if _authored(prim, NS + "medium:type"):
+                media.append(self.medium(prim))
+                medium_paths.append(prim.GetPath())
+                continue
+            owner = next((m for m in medium_paths if prim.GetPath().HasPrefix(m)), None)
+            if owner is not None:
+                if type_name not in _STRUCTURAL:
+                    self.skip(prim, f"{type_name} inside the medium prim {owner}: it gives the medium's box only")
+                continue
+            if type_name == "RenderSettings":
+                render_settings.append(prim)
+                continue
+            if type_name in _STRUCTURAL:
+                continue
+            img = UsdGeom.Imageable(prim)
+            if img and img.ComputeVisibility(self.time) == UsdGeom.Tokens.invisible:
+                self.skip(prim, f"invisible {type_name}")
+                continue
+            if img and img.ComputePurpose() in (UsdGeom.Tokens.guide, UsdGeom.Tokens.proxy):
+                self.skip(prim, f"{type_name} with purpose {img.ComputePurpose()}")
+                continue
+            if type_name == "SphereLight":
+                light = self.sphere_light(prim)
+            elif type_name == "DistantLight":
+                light = self.distant_light(prim)
+            elif type_name in ("DomeLight", "DomeLight_1"):
+                light = self.dome_light(prim)
+            elif type_name in _UNSUPPORTED_LIGHTS:
+                self.skip(prim, f"{type_name} is not supported (Tyndall has point, spot and sun lights)")
+                continue
+            elif type_name == "Mesh":
+                mesh = self.mesh(prim)
+                if mesh is not None:
+                    meshes.append(mesh)
+                continue
+            elif type_name == "Camera":
+                cameras.append(prim)
+                continue
+            elif type_name == "Volume":
+                self.skip(prim, "Volume without tyndall:medium attributes (OpenVDB grids are not read)")
+                continue
+            else:
+                if img or prim.HasAPI(UsdLux.LightAPI):
+                    self.skip(prim, f"{type_name} prims are not supported")
+                continue
+            if light is not None:
+                lights.append(light)
+                light_prims.append(str(prim.GetPath()))
+
+        settings = self.settings_prim(prims)
+        rs = self.render_settings(render_settings)
+        cam_prim = self.pick_camera(cameras, settings, rs)
+        res = self.resolution(settings, rs)
+        scene: dict[str, Any] = {
+            "version": 1,
+            "camera": self.camera(cam_prim, res),
+            "meshes": meshes,
+            "lights": lights,
+            "media": media,
+        }
+        out = self.output(settings)
+        if out:
+            scene["output"] = out
+        sky = self.sky(settings, lights)
+        if self.untinted:
+            self.notes.append(
+                "Blender export: enableColorTemperature is written for every light, so it is ignored where "
+                f"colorTemperature is not authored (no tint): {', '.join(self.untinted)}"
+            )
+        return Conversion(scene, self.skipped, self.notes, sky, light_prims)
+
+    def render_settings(self, prims: list[Usd.Prim]) -> Usd.Prim | None:
+        path = self.stage.GetMetadata("renderSettingsPrimPath")
+        if path:
+            p = self.stage.GetPrimAtPath(path)
+            if p:
+                return p
+        return prims[0] if len(prims) == 1 else None
+
+    def pick_camera(self, cameras: list[Usd.Prim], settings: Usd.Prim | None, rs: Usd.Prim | None) -> Usd.Prim:
+        for p, rel_name in ((settings, NS + "output:camera"), (rs, "camera")):
+            if p is None:
+                continue
+            rel = p.GetRelationship(rel_name)
+            targets = rel.GetForwardedTargets() if rel else []
+            if targets:
+                cam = self.stage.GetPrimAtPath(targets[0])
+                if not cam or cam.GetTypeName() != "Camera":
+                    raise UsdSceneError(str(p.GetPath()), rel_name, f"target {targets[0]} is not a Camera")
+                for other in cameras:
+                    if other.GetPath() != cam.GetPath():
+                        self.skip(other, f"camera not chosen by {p.GetPath()}.{rel_name}")
+                return cam
+        if not cameras:
+            raise UsdSceneError("/", None, "the stage has no Camera (Tyndall renders for one camera)")
+        if len(cameras) > 1:
+            paths = ", ".join(str(c.GetPath()) for c in cameras)
+            raise UsdSceneError(
+                "/", None, f"several cameras ({paths}): choose one with the relationship tyndall:output:camera"
+            )
+        return cameras[0]
+
+
+def open_stage(source: Usd.Stage | str | os.PathLike[str]) -> Usd.Stage:
+    """A stage from a ``Usd.Stage`` or a .usda/.usdc/.usd/.usdz path."""
+    if isinstance(source, Usd.Stage):
+        return source
+    path = os.fspath(source)
+    if not os.path.isfile(path):
+        raise FileNotFoundError(f"USD stage not found: {path}")
+    try:
+        stage = Usd.Stage.Open(path)
+    except Exception as e:  # pxr raises Tf.ErrorException
+        raise UsdSceneError(path, None, f"cannot open the stage: {e}") from e
+    if stage is None:
+        raise UsdSceneError(path, None, "cannot open the stage")
+    return stage
+
+
+def convert_stage(source: Usd.Stage | str | os.PathLike[str], *, time: float | None = None) -> Conversion:
+    """Convert a USD stage into a Tyndall scene.
+
+    ``time`` is the time code to read; default: the earliest time sample (or the
+    default value where an attribute has no samples). Raises :class:`UsdSceneError`
+    (naming the prim and the attribute) for a malformed stage; prims that cannot be
+    used are listed in :attr:`Conversion.skipped`.
+    """
+    stage = open_stage(source)
+    tc = Usd.TimeCode.EarliestTime() if time is None else Usd.TimeCode(time)
+    return _Converter(stage, tc).run()
+
+
+__all__ = ["Conversion", "SkySettings", "UsdSceneError", "convert_stage", "open_stage"]
