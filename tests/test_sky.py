@@ -134,3 +134,15 @@ def test_sky_cli(tmp_path: Path, tyndall_exe: Path) -> None:
         check=False,
     )
     assert bad.returncode == 1 and "visibility_m" in bad.stderr
+
+
+def test_sky_multiple_scattering_is_optional_and_adds_light() -> None:
+    single, rep1 = tyndall.sky(10.0, 0.0, width=64, sun_disc=False)
+    multi, rep2 = tyndall.sky(10.0, 0.0, width=64, sun_disc=False, multiple_scattering=True)
+    assert rep1["multiple_scattering"] is False and rep2["multiple_scattering"] is True
+    assert np.isfinite(multi).all()
+    lum = np.array([0.2126, 0.7152, 0.0722], dtype=np.float32)
+    y1, y2 = single @ lum, multi @ lum
+    assert (y2 >= y1 - 2e-3 * np.maximum(y1, 1e-4 * y1.max())).all()
+    computed = " ".join(item["what"] for item in rep2["plan"]["computed"])
+    assert "multiple scattering (approximation)" in computed

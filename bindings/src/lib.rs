@@ -203,9 +203,10 @@ fn render_to_files(
 /// parameters). Returns `(rgb, report_json)`: an H×W×3 float32 array (row 0
 /// the zenith, the centre column towards +X, as Blender's Environment Texture
 /// maps it) and the report with the matching sun lamp. With `out`, also writes
-/// the EXR (plain R, G, B) and the report next to it.
+/// the EXR (plain R, G, B) and the report next to it. `multiple_scattering`
+/// (default false) adds the approximate isotropic second-order term.
 #[pyfunction]
-#[pyo3(signature = (sun_elevation_deg, sun_rotation_deg = 0.0, *, air = 1.0, aerosol = 1.0, ozone = 1.0, altitude_m = 0.0, sun_size_deg = 0.545, width = 1024, tolerance = 1e-3, sun_disc = true, out = None))]
+#[pyo3(signature = (sun_elevation_deg, sun_rotation_deg = 0.0, *, air = 1.0, aerosol = 1.0, ozone = 1.0, altitude_m = 0.0, sun_size_deg = 0.545, width = 1024, tolerance = 1e-3, sun_disc = true, multiple_scattering = false, out = None))]
 #[allow(clippy::too_many_arguments)]
 fn sky<'py>(
     py: Python<'py>,
@@ -219,6 +220,7 @@ fn sky<'py>(
     width: usize,
     tolerance: f64,
     sun_disc: bool,
+    multiple_scattering: bool,
     out: Option<PathBuf>,
 ) -> PyResult<(Bound<'py, PyAny>, String)> {
     let params = tyndall_core::sky::atmosphere::AtmosphereParams {
@@ -251,7 +253,14 @@ fn sky<'py>(
         tolerance,
         sun_disc,
     };
-    let (tex, report) = py.detach(|| tyndall_core::sky::render_world(&params, "atmosphere", &settings));
+    let (tex, report) = py.detach(|| {
+        if multiple_scattering {
+            let ms = tyndall_core::sky::atmosphere::AtmosphereWithMultipleScattering::new(params, 1e-3);
+            tyndall_core::sky::render_world(&ms, "atmosphere", &settings)
+        } else {
+            tyndall_core::sky::render_world(&params, "atmosphere", &settings)
+        }
+    });
     if let Some(path) = out {
         let written = py.detach(|| {
             tyndall_core::io::write_rgb_exr(&path, tex.width, tex.height, &tex.rgb).map_err(|e| e.to_string())?;

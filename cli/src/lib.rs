@@ -119,6 +119,20 @@ enum Command {
         /// Leave the sun disc out of the texture (use the sun lamp).
         #[arg(long)]
         no_sun_disc: bool,
+        /// Sampling: `adaptive` (default; grid with error control) or
+        /// `klassen-coherence` (Klassen's baseline: every pixel, a neighbour's value
+        /// reused while the first estimates differ by less than the tolerance).
+        #[arg(long, value_enum, default_value_t = SkyIntegratorName::Adaptive)]
+        integrator: SkyIntegratorName,
+        /// Colour path at the evaluated points: `auto` (default; reduced wavelength
+        /// set where its measured error allows), `spectral` (always 81 samples),
+        /// `bands17` (always 17 wavelengths, unchecked).
+        #[arg(long, value_enum, default_value_t = SkyColourName::Auto)]
+        colour_path: SkyColourName,
+        /// Atmosphere only: add the optional, approximate multiple-scattering term
+        /// (isotropic second order; off by default).
+        #[arg(long)]
+        multiple_scattering: bool,
         #[command(flatten)]
         files: OutputFiles,
     },
@@ -168,6 +182,26 @@ impl OutputFiles {
     fn report_path(&self) -> PathBuf {
         self.report.clone().unwrap_or_else(|| self.out.with_extension("report.json"))
     }
+}
+
+/// Sampling of the `sky` command.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum SkyIntegratorName {
+    /// Adaptive (θ, Δφ) grid with error control, resampled (default).
+    Adaptive,
+    /// Klassen 1987 §4: per-pixel integrals with pixel coherence (the baseline).
+    KlassenCoherence,
+}
+
+/// Colour path of the `sky` command.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum SkyColourName {
+    /// Reduced wavelength set where its measured error allows, else spectral (default).
+    Auto,
+    /// Always 81 spectral samples.
+    Spectral,
+    /// Always 17 wavelengths (unchecked).
+    Bands17,
 }
 
 /// Sky models the `sky` command offers.
@@ -288,6 +322,9 @@ fn execute(cmd: Command) -> Result<(), CliError> {
             width,
             tolerance,
             no_sun_disc,
+            integrator,
+            colour_path,
+            multiple_scattering,
             files,
         } => {
             let sky = match model {
@@ -318,7 +355,30 @@ fn execute(cmd: Command) -> Result<(), CliError> {
                 tolerance,
                 sun_disc: !no_sun_disc,
             };
-            let r = sky_to_files(&sky, &settings, &files.out, Some(&files.report_path()), files.preview.as_deref())?;
+            let options = SkyOptions {
+                build: tyndall_core::sky::texture::BuildOptions {
+                    colour: match colour_path {
+                        SkyColourName::Auto => tyndall_core::sky::texture::ColourPath::Auto,
+                        SkyColourName::Spectral => tyndall_core::sky::texture::ColourPath::Spectral,
+                        SkyColourName::Bands17 => tyndall_core::sky::texture::ColourPath::Bands17,
+                    },
+                    integrator: match integrator {
+                        SkyIntegratorName::Adaptive => tyndall_core::sky::texture::Integrator::Adaptive,
+                        SkyIntegratorName::KlassenCoherence => {
+                            tyndall_core::sky::texture::Integrator::KlassenCoherence { threshold: tolerance }
+                        }
+                    },
+                },
+                multiple_scattering,
+            };
+            let r = sky_to_files_with(
+                &sky,
+                &settings,
+                &options,
+                &files.out,
+                Some(&files.report_path()),
+                files.preview.as_deref(),
+            )?;
             let out = &files.out;
             say!(
                 "{}: {}x{} sky in {:.3} s; {} evaluations, interpolation error {:.2e} (tolerance {:.1e}); sun lamp strength {:.3} W/m², colour {:?}",
@@ -483,6 +543,28 @@ pub fn sky_to_files(
     report_path: Option<&Path>,
     preview: Option<&Path>,
 ) -> Result<tyndall_core::sky::SkyReport, CliError> {
+    sky_to_files_with(sky, settings, &SkyOptions::default(), out, report_path, preview)
+}
+
+/// Options of [`sky_to_files_with`] beyond the texture settings.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct SkyOptions {
+    /// Colour path and sampling (defaults: auto, adaptive).
+    pub build: tyndall_core::sky::texture::BuildOptions,
+    /// Atmosphere only: add the approximate multiple-scattering term (default off;
+    /// an error for Klassen's model, which has none).
+    pub multiple_scattering: bool,
+}
+
+/// [`sky_to_files`] with [`SkyOptions`].
+pub fn sky_to_files_with(
+    sky: &SkyChoice,
+    settings: &tyndall_core::sky::texture::TextureSettings,
+    options: &SkyOptions,
+    out: &Path,
+    report_path: Option<&Path>,
+    preview: Option<&Path>,
+) -> Result<tyndall_core::sky::SkyReport, CliError> {
     let bad = |path: String, message: String| {
         CliError::Scene(SceneError {
             source_name: "sky parameters".into(),
@@ -491,10 +573,16 @@ pub fn sky_to_files(
         })
     };
     let klassen_world;
+    let with_ms;
     let (model, name): (&dyn tyndall_core::sky::texture::SkyModel, &str) = match sky {
         SkyChoice::Atmosphere(p) => {
             p.validate().map_err(|(path, message)| bad(path, message))?;
-            (p, "atmosphere")
+            if options.multiple_scattering {
+                with_ms = tyndall_core::sky::atmosphere::AtmosphereWithMultipleScattering::new(*p, 1e-3);
+                (&with_ms, "atmosphere")
+            } else {
+                (p, "atmosphere")
+            }
         }
         SkyChoice::Klassen {
             params,
@@ -522,6 +610,12 @@ pub fn sky_to_files(
                 sun: tyndall_core::sky::blender_sun_direction(*sun_elevation_rad, *sun_rotation_rad),
                 sun_diameter_rad: *sun_size_rad,
             };
+            if options.multiple_scattering {
+                return Err(bad(
+                    "multiple_scattering".into(),
+                    "the multiple-scattering approximation exists for the atmosphere model only".into(),
+                ));
+            }
             (&klassen_world, "klassen")
         }
     };
@@ -539,7 +633,7 @@ pub fn sky_to_files(
             ),
         }));
     }
-    let (tex, mut report) = tyndall_core::sky::render_world(model, name, settings);
+    let (tex, mut report) = tyndall_core::sky::render_world_with(model, name, settings, &options.build);
     if let Some(parent) = out.parent().filter(|p| !p.as_os_str().is_empty()) {
         std::fs::create_dir_all(parent).map_err(|source| CliError::Io {
             path: parent.to_path_buf(),

@@ -115,6 +115,7 @@ def sky(
     width: int = 1024,
     tolerance: float = 1e-3,
     sun_disc: bool = True,
+    multiple_scattering: bool = False,
     out: str | os.PathLike[str] | None = None,
 ) -> tuple[np.ndarray, dict[str, Any]]:
     """Render a sky world texture with the layered atmosphere (Blender's Sky Texture parameters).
@@ -124,6 +125,8 @@ def sky(
     it), and the report with ``sun_lamp`` (direction, Blender rotation, colour, strength),
     timings, the error estimate and the plan. ``sun_rotation_deg`` is Blender's Sun
     Rotation. With ``out``, the EXR (plain R, G, B) and ``OUT.report.json`` are written.
+    ``multiple_scattering=True`` adds an optional, approximate multiple-scattering term
+    (isotropic second order, off by default; ``report["multiple_scattering"]`` says so).
     Invalid parameters raise :class:`SceneFormatError` naming the field.
     """
     rgb, report_json = _sky(
@@ -137,6 +140,7 @@ def sky(
         width=width,
         tolerance=tolerance,
         sun_disc=sun_disc,
+        multiple_scattering=multiple_scattering,
         out=os.fspath(out) if out is not None else None,
     )
     return rgb, json.loads(report_json)

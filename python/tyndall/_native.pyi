@@ -43,5 +43,6 @@ def sky(
     width: int = 1024,
     tolerance: float = 1e-3,
     sun_disc: bool = True,
+    multiple_scattering: bool = False,
     out: str | None = None,
 ) -> tuple[np.ndarray, str]: ...

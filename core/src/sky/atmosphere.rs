@@ -188,6 +188,7 @@
 
 use crate::medium::phase::PhaseFunction;
 use crate::numeric::integrate_adaptive;
+use crate::sky::bands::Bands;
 use crate::spectrum::{SPECTRAL_SAMPLES, Spectrum, solar_spectral_irradiance, wavelengths_nm};
 use glam::DVec3;
 use rayon::prelude::*;
@@ -603,6 +604,12 @@ fn columns_for_tau(ray: &Ray, t0: f64, t1: f64, w: &[f64; 3], tau_tol: f64) -> (
     )
 }
 
+/// `a / b`, 0 where `b` is 0.
+#[inline]
+fn safe_div(a: f64, b: f64) -> f64 {
+    if b != 0.0 { a / b } else { 0.0 }
+}
+
 /// `b > a`, false for NaN.
 #[inline]
 fn longer(a: f64, b: f64) -> bool {
@@ -918,46 +925,64 @@ impl AtmosphereParams {
     /// pass: `L = p_R(ν)·parts[0] + p_M(ν)·parts[1]`. Errors per part.
     fn single_scattering_parts(&self, view_dir: DVec3, rel_tol: f64) -> ([Spectrum; 2], [Spectrum; 2], usize) {
         const N: usize = SPECTRAL_SAMPLES;
-        let nan = [[f64::NAN; N]; 2];
+        let idx: [usize; N] = std::array::from_fn(|i| i);
+        let (value, error, evaluations) = self.scattering_parts_at::<{ 2 * N }>(view_dir, rel_tol, &idx);
+        let mut parts = [[0.0; N]; 2];
+        let mut errors = [[0.0; N]; 2];
+        for k in 0..2 {
+            for i in 0..N {
+                parts[k][i] = value[k * N + i];
+                errors[k][i] = error[k * N + i];
+            }
+        }
+        (parts, errors, evaluations)
+    }
+
+    /// The phase-free Rayleigh and Mie parts at the wavelengths `idx` (indices
+    /// into the 81-sample grid) only: `M = 2·idx.len()` values, the Rayleigh
+    /// parts first, with their errors. NaN for a bad direction.
+    fn scattering_parts_at<const M: usize>(&self, view_dir: DVec3, rel_tol: f64, idx: &[usize]) -> ([f64; M], [f64; M], usize) {
+        let n = idx.len();
+        debug_assert_eq!(2 * n, M);
         let len = view_dir.length();
         if !(len.is_finite() && len > 0.0) {
-            return (nan, nan, 0);
+            return ([f64::NAN; M], [f64::NAN; M], 0);
         }
         let v = view_dir / len;
         let tol = sanitize_tol(rel_tol, 1e-4);
         let s = self.sun_direction();
         let nu = v.dot(s).clamp(-1.0, 1.0);
         let view = self.observer_ray(v.z);
-        let zero = [[0.0; N]; 2];
         let Some((t_in, t_end, _)) = view.segment() else {
-            return (zero, zero, 0);
+            return ([0.0; M], [0.0; M], 0);
         };
         if !longer(t_in, t_end) {
-            return (zero, zero, 0);
+            return ([0.0; M], [0.0; M], 0);
         }
         let res = self.resolved();
         let e0 = solar_spectral_irradiance();
-        let w_r: Spectrum = std::array::from_fn(|i| e0[i] * res.scat_r[i]);
-        let w_m: Spectrum = std::array::from_fn(|i| e0[i] * res.scat_m);
+        let sigma: [Vec<f64>; 3] = std::array::from_fn(|k| idx.iter().map(|&i| res.sigma[k][i]).collect());
+        let w_r: Vec<f64> = idx.iter().map(|&i| e0[i] * res.scat_r[i]).collect();
+        let w_m: Vec<f64> = idx.iter().map(|&i| e0[i] * res.scat_m).collect();
         // Each species' optical depth in each of the two columns to 0.005 tol.
         let tau_tol = 0.005 * tol;
         let o_s = view.r0 * s.z;
 
         let mut breaks = vec![t_in, t_end];
-        let (cuts, n) = view.cuts(t_in, t_end);
-        breaks.extend_from_slice(&cuts[..n]);
+        let (cuts, nc) = view.cuts(t_in, t_end);
+        breaks.extend_from_slice(&cuts[..nc]);
         push_cylinder_crossings(&view, nu, o_s, t_in, t_end, &mut breaks);
         breaks.sort_by(f64::total_cmp);
         breaks.dedup();
 
-        let mut dtau_max = [0.0_f64; N];
-        let mut f = |t: f64| -> [f64; 2 * N] {
+        let mut dtau_max = vec![0.0_f64; n];
+        let mut f = |t: f64| -> [f64; M] {
             let (h, r) = view.height_radius(t);
             let h = h.clamp(0.0, ATMOSPHERE_TOP_M);
             let mu_s = ((o_s + t * nu) / r).clamp(-1.0, 1.0);
             let sun = Ray::new(h, mu_s);
             let Some((_, t_sun, RayEnd::Top)) = sun.segment() else {
-                return [0.0; 2 * N];
+                return [0.0; M];
             };
             let (cs, es) = columns_for_tau(&sun, 0.0, t_sun, &res.sigma_max, tau_tol);
             let (cv, ev) = columns_for_tau(&view, t_in, t, &res.sigma_max, tau_tol);
@@ -965,24 +990,67 @@ impl AtmosphereParams {
             let de = [es[0] + ev[0], es[1] + ev[1], es[2] + ev[2]];
             let rho_r = rayleigh_density(h);
             let rho_m = mie_density(h);
-            let mut out = [0.0; 2 * N];
-            for i in 0..N {
-                let tau = res.sigma[0][i] * d[0] + res.sigma[1][i] * d[1] + res.sigma[2][i] * d[2];
-                let dtau = res.sigma[0][i] * de[0] + res.sigma[1][i] * de[1] + res.sigma[2][i] * de[2];
+            let mut out = [0.0; M];
+            for i in 0..n {
+                let tau = sigma[0][i] * d[0] + sigma[1][i] * d[1] + sigma[2][i] * d[2];
+                let dtau = sigma[0][i] * de[0] + sigma[1][i] * de[1] + sigma[2][i] * de[2];
                 dtau_max[i] = dtau_max[i].max(dtau);
                 let t = (-tau).exp();
                 out[i] = t * w_r[i] * rho_r;
-                out[N + i] = t * w_m[i] * rho_m;
+                out[n + i] = t * w_m[i] * rho_m;
             }
             out
         };
-        let (value, error, evaluations) = integrate_pieces(&mut f, &breaks, 0.0, tol, 1e-2, 2000);
-        let mut parts = [[0.0; N]; 2];
-        let mut errors = [[0.0; N]; 2];
+        let (value, mut error, evaluations) = integrate_pieces(&mut f, &breaks, 0.0, tol, 1e-2, 2000);
         for k in 0..2 {
-            for i in 0..N {
-                parts[k][i] = value[k * N + i];
-                errors[k][i] = error[k * N + i] + value[k * N + i].abs() * (dtau_max[i] + 64.0 * f64::EPSILON);
+            for i in 0..n {
+                error[k * n + i] += value[k * n + i].abs() * (dtau_max[i] + 64.0 * f64::EPSILON);
+            }
+        }
+        (value, error, evaluations)
+    }
+
+    /// The phase-free Rayleigh and Mie parts on a reduced wavelength set
+    /// ([`Bands`]): the integrals at the node wavelengths, the 81-sample
+    /// spectra reconstructed from the smooth factor `g = S / (E₀ β_s)` as a
+    /// function of the Rayleigh and ozone extinction coefficients (see
+    /// [`crate::sky::bands`]). The errors are the nodes' quadrature errors,
+    /// expanded the same way; the reconstruction's own error is not included
+    /// (it is measured by the caller).
+    pub fn single_scattering_parts_banded(&self, view_dir: DVec3, rel_tol: f64, bands: Bands) -> ([Spectrum; 2], [Spectrum; 2], usize) {
+        let idx: Vec<usize> = bands.nodes().collect();
+        let (value, error, evaluations): (Vec<f64>, Vec<f64>, usize) = match bands {
+            Bands::Nodes9 => {
+                let (v, e, n) = self.scattering_parts_at::<18>(view_dir, rel_tol, &idx);
+                (v.to_vec(), e.to_vec(), n)
+            }
+            Bands::Nodes17 => {
+                let (v, e, n) = self.scattering_parts_at::<34>(view_dir, rel_tol, &idx);
+                (v.to_vec(), e.to_vec(), n)
+            }
+        };
+        let n = idx.len();
+        let res = self.resolved();
+        let e0 = solar_spectral_irradiance();
+        let carrier: [Spectrum; 2] = [
+            std::array::from_fn(|i| e0[i] * res.scat_r[i]),
+            std::array::from_fn(|i| e0[i] * res.scat_m),
+        ];
+        let vars = [&res.sigma[0], &res.sigma[2]];
+        let mut parts = [[0.0; SPECTRAL_SAMPLES]; 2];
+        let mut errors = [[0.0; SPECTRAL_SAMPLES]; 2];
+        for k in 0..2 {
+            if value[k * n..(k + 1) * n].iter().any(|x| x.is_nan()) {
+                return ([[f64::NAN; SPECTRAL_SAMPLES]; 2], [[f64::NAN; SPECTRAL_SAMPLES]; 2], evaluations);
+            }
+            let g: Vec<f64> = (0..n).map(|j| safe_div(value[k * n + j], carrier[k][idx[j]])).collect();
+            let ge: Vec<f64> = (0..n).map(|j| safe_div(error[k * n + j], carrier[k][idx[j]])).collect();
+            let gs = bands.expand(&vars, &g);
+            // Errors: the largest relative node error applied to the whole spectrum.
+            let rel = (0..n).fold(0.0f64, |m, j| if g[j] > 0.0 { m.max(ge[j] / g[j]) } else { m });
+            for i in 0..SPECTRAL_SAMPLES {
+                parts[k][i] = carrier[k][i] * gs[i];
+                errors[k][i] = parts[k][i].abs() * rel;
             }
         }
         (parts, errors, evaluations)
@@ -1160,6 +1228,19 @@ impl crate::sky::texture::SkyModel for AtmosphereParams {
         )
     }
 
+    fn sky_components_banded(&self, view_dir: DVec3, rel_tol: f64, bands: Bands) -> Option<crate::sky::texture::SkyComponents> {
+        let ([r, m], [er, em], _) = self.single_scattering_parts_banded(view_dir, rel_tol, bands);
+        let (p_r, p_m) = self.phases(view_dir);
+        let err: Spectrum = std::array::from_fn(|i| p_r * er[i] + p_m * em[i]);
+        Some((
+            vec![
+                (Some(PhaseFunction::Rayleigh), r),
+                (Some(PhaseFunction::CornetteShanks { g: MIE_G }), m),
+            ],
+            err,
+        ))
+    }
+
     fn sun_direction(&self) -> DVec3 {
         AtmosphereParams::sun_direction(self)
     }
@@ -1174,6 +1255,98 @@ impl crate::sky::texture::SkyModel for AtmosphereParams {
 
     fn horizon_zenith(&self) -> f64 {
         std::f64::consts::FRAC_PI_2 + self.horizon_dip_rad()
+    }
+}
+
+/// The layered atmosphere with the optional, **approximate** multiple-scattering
+/// term (off unless this type is used; the CLI's `--multiple-scattering`, the
+/// Python keyword `multiple_scattering=True`).
+///
+/// What it is: the second-order correction of the module docs (Ishiyama's
+/// ambient term on the sphere; a much simplified form of the isotropic
+/// "multiple-scattering LUT" idea of Hillaire 2020, with one radiance for the
+/// whole atmosphere instead of a table over altitude and sun angle): the
+/// single-scattered radiance averaged over all directions at the observer,
+/// `L̄(λ)` ([`AtmosphereParams::mean_sky_radiance`], 8 × 8 Gauss–Legendre
+/// directions per hemisphere), is taken to fill the atmosphere isotropically,
+/// and the light it scatters towards the observer along each view ray
+/// ([`AtmosphereParams::ambient_scattered_radiance`]) is added to single
+/// scattering as a third, phase-free component. It is never negative, so it
+/// only adds light. It ignores the ground's reflection, the change of the
+/// radiance field with altitude and along the earth's shadow, and orders above
+/// two: an approximation without an error bar (its quadrature error is
+/// estimated, its model error is not).
+#[derive(Debug, Clone)]
+pub struct AtmosphereWithMultipleScattering {
+    /// The atmosphere and sun.
+    pub params: AtmosphereParams,
+    /// Mean single-scattered radiance at the observer `L̄`, W·m⁻²·sr⁻¹·nm⁻¹, ≥ 0.
+    pub ambient: Spectrum,
+    /// Scattering points evaluated for `ambient`.
+    pub ambient_evaluations: usize,
+}
+
+impl AtmosphereWithMultipleScattering {
+    /// Computes `L̄` for `params` with each direction at `rel_tol` (clamped to
+    /// 1e-13…0.1; 1e-3 is plenty for an approximation).
+    pub fn new(params: AtmosphereParams, rel_tol: f64) -> Self {
+        let (ambient, n) = params.mean_sky_radiance(rel_tol);
+        AtmosphereWithMultipleScattering {
+            params,
+            ambient: ambient.map(|x| x.max(0.0)),
+            ambient_evaluations: n,
+        }
+    }
+
+    fn ambient_term(&self, view_dir: DVec3, rel_tol: f64) -> (Spectrum, Spectrum) {
+        let (l, e, _) = self.params.ambient_scattered_radiance(view_dir, &self.ambient, rel_tol);
+        (l.map(|x| x.max(0.0)), e)
+    }
+}
+
+impl crate::sky::texture::SkyModel for AtmosphereWithMultipleScattering {
+    fn sky_radiance(&self, view_dir: DVec3, rel_tol: f64) -> (Spectrum, Spectrum) {
+        let (l, e, _) = self.params.sky_spectral_radiance(view_dir, rel_tol);
+        let (a, ae) = self.ambient_term(view_dir, rel_tol);
+        (std::array::from_fn(|i| l[i] + a[i]), std::array::from_fn(|i| e[i] + ae[i]))
+    }
+
+    fn sky_components(&self, view_dir: DVec3, rel_tol: f64) -> (Vec<(Option<PhaseFunction>, Spectrum)>, Spectrum) {
+        let (mut parts, e) = self.params.sky_components(view_dir, rel_tol);
+        let (a, ae) = self.ambient_term(view_dir, rel_tol);
+        parts.push((None, a));
+        (parts, std::array::from_fn(|i| e[i] + ae[i]))
+    }
+
+    fn sky_components_banded(&self, view_dir: DVec3, rel_tol: f64, bands: Bands) -> Option<crate::sky::texture::SkyComponents> {
+        let (mut parts, e) = self.params.sky_components_banded(view_dir, rel_tol, bands)?;
+        // The ambient term stays spectral (it is smooth and cheap next to the single scattering).
+        let (a, ae) = self.ambient_term(view_dir, rel_tol);
+        parts.push((None, a));
+        Some((parts, std::array::from_fn(|i| e[i] + ae[i])))
+    }
+
+    fn multiple_scattering(&self) -> Option<String> {
+        Some(format!(
+            "APPROXIMATION, not physics with an error bar: isotropic second-order term, the mean single-scattered sky radiance at the observer ({} scattering points, 8×8 Gauss–Legendre directions per hemisphere) scattered once more along each view ray; ignores the ground, the altitude dependence of the radiance field and orders above two",
+            self.ambient_evaluations
+        ))
+    }
+
+    fn sun_direction(&self) -> DVec3 {
+        self.params.sun_direction()
+    }
+
+    fn sun_irradiance(&self) -> Spectrum {
+        self.params.sun_spectral_irradiance().0
+    }
+
+    fn sun_angular_diameter(&self) -> f64 {
+        self.params.sun_size_rad
+    }
+
+    fn horizon_zenith(&self) -> f64 {
+        std::f64::consts::FRAC_PI_2 + self.params.horizon_dip_rad()
     }
 }
 

@@ -960,6 +960,54 @@ impl KlassenSky {
         (s.radiance, s.error, s.evaluations)
     }
 
+    /// Klassen's "first estimate" (seed §4): the whole-interval Simpson
+    /// estimate of the haze integral (2.6) in plain `l` from its ends and
+    /// midpoint (three integrand evaluations per haze piece), times the phase
+    /// function, plus the blue sky — the radiance his coherence test compares
+    /// between pixels. W·m⁻²·sr⁻¹·nm⁻¹; zeros for a bad direction.
+    pub fn first_estimate(&self, view_dir: DVec3, sun_dir: DVec3) -> Spectrum {
+        let (Some(v), Some(sun)) = (normalise(view_dir), normalise(sun_dir)) else {
+            return [0.0; N];
+        };
+        let g = self.geometry(v, sun);
+        let lh = g.haze.map_or(0.0, |(a, b)| b - a);
+        let blue: Spectrum = if g.ground.is_some() {
+            [0.0; N]
+        } else {
+            let b = self.blue_sin(g.ss);
+            std::array::from_fn(|i| (-self.beta_p[i] * lh).exp() * b[i])
+        };
+        let has_haze = self.beta_p.iter().any(|&b| b > 0.0) && self.params.haze_single_scattering_albedo > 0.0;
+        if !has_haze || g.pieces.is_empty() {
+            return blue;
+        }
+        let pieces: Vec<Piece> = g
+            .pieces
+            .iter()
+            .map(|p| Piece {
+                map: MapKind::Linear,
+                ..*p
+            })
+            .collect();
+        let samples: Vec<[Option<f64>; 3]> = pieces.iter().map(|p| [0.0, 0.5, 1.0].map(|u| self.dee(&g, p, u))).collect();
+        let d_ref = samples.iter().flatten().flatten().fold(f64::INFINITY, |m, d| m.min(*d));
+        let d_ref = if d_ref.is_finite() { d_ref } else { 0.0 };
+        let mut s0 = [0.0; N];
+        for (p, ds) in pieces.iter().zip(&samples) {
+            let len = p.b - p.a;
+            for (d, w) in ds.iter().zip([1.0, 4.0, 1.0]) {
+                if let Some(d) = d {
+                    for i in 0..N {
+                        s0[i] += len / 6.0 * w * (-self.kappa[i] * (d - d_ref)).exp();
+                    }
+                }
+            }
+        }
+        let (haze, _) = self.finish(&g, d_ref, &s0, &[0.0; N]);
+        let p = self.params.haze_phase.eval(g.mu);
+        std::array::from_fn(|i| p * haze[i] + blue[i])
+    }
+
     /// The full result for one line of sight ([`SkySample`]); arguments as
     /// [`KlassenSky::sky_spectral_radiance`].
     pub fn sky_sample(&self, view_dir: DVec3, sun_dir: DVec3, rel_tol: f64, integrator: SkyIntegrator) -> SkySample {
@@ -1351,6 +1399,16 @@ impl crate::sky::texture::SkyModel for KlassenWorld {
             vec![(Some(self.sky.params().haze_phase), s.haze_phase_free), (None, s.blue_sky_radiance)],
             s.error,
         )
+    }
+
+    fn first_estimate(&self, view_dir: DVec3) -> Spectrum {
+        self.sky.first_estimate(view_dir, self.sun)
+    }
+
+    /// Klassen's adaptive Simpson.
+    fn baseline_radiance(&self, view_dir: DVec3, rel_tol: f64) -> (Spectrum, Spectrum) {
+        let s = self.sky.sky_sample(view_dir, self.sun, rel_tol, SkyIntegrator::Simpson);
+        (s.radiance, s.error)
     }
 
     fn sun_direction(&self) -> DVec3 {

@@ -4,6 +4,7 @@
 //! Blender, and [`SunLamp`] gives the matching sun lamp.
 
 pub mod atmosphere;
+pub mod bands;
 pub mod klassen;
 pub mod texture;
 
@@ -41,7 +42,7 @@ pub struct SkyReport {
     pub interpolation_error: f64,
     /// Largest model (quadrature) error estimate at the nodes, relative to luminance.
     pub model_error: f64,
-    /// Sky model evaluations (each a full spectral single-scattering integral).
+    /// Sky model evaluations (each a single-scattering integral, spectral or on the reduced wavelength set of `colour`).
     pub evaluations: usize,
     /// Grid cells.
     pub cells: usize,
@@ -51,35 +52,96 @@ pub struct SkyReport {
     pub pixel_limited_cells: usize,
     /// Their largest interpolation miss, relative to luminance.
     pub pixel_limited_error: f64,
+    /// The colour path (spectral or a reduced wavelength set) and the measurement that chose it.
+    pub colour: texture::ColourDecision,
+    /// The sampling used (`adaptive` grid or Klassen's coherence baseline).
+    pub integrator: texture::Integrator,
+    /// Whether the approximate multiple-scattering term is included.
+    pub multiple_scattering: bool,
     /// What was computed and what was left out.
     pub plan: Plan,
 }
 
-/// Renders a world texture of `model` and the report (timings, error, sun lamp, plan).
+/// Renders a world texture of `model` and the report (timings, error, sun lamp, plan)
+/// with the default options (colour path decided per render, adaptive grid).
 pub fn render_world(
     model: &dyn texture::SkyModel,
     model_name: &str,
     settings: &texture::TextureSettings,
 ) -> (texture::WorldTexture, SkyReport) {
+    render_world_with(model, model_name, settings, &texture::BuildOptions::default())
+}
+
+/// [`render_world`] with explicit [`texture::BuildOptions`].
+pub fn render_world_with(
+    model: &dyn texture::SkyModel,
+    model_name: &str,
+    settings: &texture::TextureSettings,
+    options: &texture::BuildOptions,
+) -> (texture::WorldTexture, SkyReport) {
     let t0 = Instant::now();
-    let tex = texture::build_world_texture(model, settings);
+    let tex = texture::build_world_texture_with(model, settings, options);
     let seconds = t0.elapsed().as_secs_f64();
+    let colour = &tex.colour;
     let mut plan = Plan {
-        colour_path: "spectral (81 samples) at the grid nodes; pixels interpolated in linear Rec.709".into(),
+        colour_path: match colour.path.as_str() {
+            "spectral" => format!(
+                "spectral (81 samples) at the evaluated points ({}); pixels in linear Rec.709",
+                colour.reason
+            ),
+            other => format!(
+                "{other}: the integrals at a reduced set of wavelengths, spectra reconstructed before Rec.709 ({})",
+                colour.reason
+            ),
+        },
         ..Default::default()
     };
-    plan.computed(
-        "sky",
-        format!(
-            "single scattering, {} spectral evaluations on an adaptive grid of {} cells over (view zenith, azimuth from the sun), phase-free components interpolated and multiplied by the exact phase functions per pixel",
-            tex.evaluations, tex.cells
+    if colour.path != "spectral" {
+        plan.left_out(
+            "wavelengths between the band nodes",
+            format!(
+                "the integrals are evaluated at {}; the other wavelengths are reconstructed from a least-squares fit of the smooth factor (measured against the full spectral path: {})",
+                colour.path, colour.reason
+            ),
+        );
+    }
+    let ms = model.multiple_scattering();
+    let order = if ms.is_some() {
+        "single scattering plus an approximate multiple-scattering term"
+    } else {
+        "single scattering"
+    };
+    match options.integrator {
+        texture::Integrator::Adaptive => {
+            plan.computed(
+                "sky",
+                format!(
+                    "{order}, {} evaluations on an adaptive grid of {} cells over (view zenith, azimuth from the sun), phase-free components interpolated and multiplied by the exact phase functions per pixel",
+                    tex.evaluations, tex.cells
+                ),
+            );
+            plan.left_out(
+                format!("per-pixel integrals ({} pixels)", tex.width * tex.height),
+                "the sky depends only on the view zenith angle and the azimuth from the sun: pixels are interpolated from the grid within the tolerance",
+            );
+        }
+        texture::Integrator::KlassenCoherence { threshold } => {
+            plan.computed(
+                "sky",
+                format!(
+                    "{order}, Klassen's pixel coherence (threshold {threshold:.1e}): {} first estimates, {} full integrals with the model's baseline integrator, other pixels reuse a neighbour's value; no error control between pixels",
+                    tex.first_estimates, tex.evaluations
+                ),
+            );
+        }
+    }
+    match &ms {
+        Some(how) => plan.computed("multiple scattering (approximation)", how.clone()),
+        None => plan.left_out(
+            "multiple scattering",
+            "not included (single scattering only; the atmosphere offers an optional approximation)",
         ),
-    );
-    plan.left_out(
-        format!("per-pixel integrals ({} pixels)", tex.width * tex.height),
-        "the sky depends only on the view zenith angle and the azimuth from the sun: pixels are interpolated from the grid within the tolerance",
-    );
-    plan.left_out("multiple scattering", "not included (single scattering only)");
+    }
     plan.left_out("ground", "rays below the horizon carry the light scattered by the air between the observer and the ground; the ground itself is not rendered");
     if settings.sun_disc {
         plan.computed(
@@ -110,6 +172,9 @@ pub fn render_world(
         sun_disc_pixels: tex.sun_pixels,
         pixel_limited_cells: tex.pixel_limited_cells,
         pixel_limited_error: tex.pixel_limited_error,
+        colour: tex.colour.clone(),
+        integrator: options.integrator,
+        multiple_scattering: ms.is_some(),
         plan,
     };
     (tex, report)
