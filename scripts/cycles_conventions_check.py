@@ -91,9 +91,9 @@ def blackman_harris_image(radiance_fn, rot3, res, focal_mm, sensor_w=36.0, width
     out = np.zeros((h, w, L.shape[-1]))
     tmp = np.zeros((L.shape[0], w, L.shape[-1]))
     for i in range(w):
-        tmp[:, i] = np.tensordot(wt, L[:, i * sub: i * sub + 2 * n_half], axes=(0, 1))
+        tmp[:, i] = np.tensordot(wt, L[:, i * sub : i * sub + 2 * n_half], axes=(0, 1))
     for j in range(h):
-        out[j] = np.tensordot(wt, tmp[j * sub: j * sub + 2 * n_half], axes=(0, 0))
+        out[j] = np.tensordot(wt, tmp[j * sub : j * sub + 2 * n_half], axes=(0, 0))
     return out
 
 
@@ -214,8 +214,9 @@ def far_from_light_mask(cam, rot3, res, focal_mm, light, radius_px=3.0, sensor_w
 def setup(res, samples, cam_pos, cam_rot, focal=20.0, volume_bounces=0, max_bounces=0):
     cr.reset_blender()
     cr.add_camera(cam_pos, cam_rot, focal_mm=focal)
-    cr.configure_render(res, samples, 1, "BLACKMAN_HARRIS", 1.5, threads=2,
-                        bounces_max=max_bounces, volume_bounces=volume_bounces)
+    cr.configure_render(
+        res, samples, 1, "BLACKMAN_HARRIS", 1.5, threads=2, bounces_max=max_bounces, volume_bounces=volume_bounces
+    )
     cr.set_world_media([])
 
 
@@ -240,8 +241,13 @@ def check_point_plane(samples):
     light = np.array([0.3, 0.2, h])
     cam = np.array([0.0, 0.0, 3.0])
     setup(RES, samples, cam, look_down(), focal=30.0)
-    cr.add_mesh("plane", [(-50, -50, 0), (50, -50, 0), (50, 50, 0), (-50, 50, 0)], [(0, 1, 2), (0, 2, 3)],
-                np.eye(4), cr.diffuse_material((alb, alb, alb)))
+    cr.add_mesh(
+        "plane",
+        [(-50, -50, 0), (50, -50, 0), (50, 50, 0), (-50, 50, 0)],
+        [(0, 1, 2), (0, 2, 3)],
+        np.eye(4),
+        cr.diffuse_material((alb, alb, alb)),
+    )
     cr.add_light("point", "pt", cr.pose_matrix(np.eye(3), light), col, P)
     imgs, secs = render_two_seeds(samples)
     I0 = P * col / FOUR_PI
@@ -262,7 +268,9 @@ def check_point_plane(samples):
     out["pixel_rel_dev_rms_by_shift_px"] = {}
     for sh in [(0.0, 0.0), (0.5, 0.0), (0.0, 0.5), (0.5, 0.5), (-0.5, -0.5), (0.4, 0.4), (0.6, 0.6)]:
         p = blackman_harris_image(rad, look_down(), RES, 30.0, shift=sh)
-        out["pixel_rel_dev_rms_by_shift_px"][f"{sh[0]:+.1f},{sh[1]:+.1f}"] = float(np.sqrt(np.mean((mean / p - 1) ** 2)))
+        out["pixel_rel_dev_rms_by_shift_px"][f"{sh[0]:+.1f},{sh[1]:+.1f}"] = float(
+            np.sqrt(np.mean((mean / p - 1) ** 2))
+        )
     out["seconds"] = secs
     return out
 
@@ -273,8 +281,13 @@ def check_spot_plane(samples):
     size, blend = math.radians(60.0), 0.4
     pos = np.array([0.0, 0.0, h])
     setup(RES, samples, pos, look_down(), focal=16.0)
-    cr.add_mesh("plane", [(-50, -50, 0), (50, -50, 0), (50, 50, 0), (-50, 50, 0)], [(0, 1, 2), (0, 2, 3)],
-                np.eye(4), cr.diffuse_material((alb, alb, alb)))
+    cr.add_mesh(
+        "plane",
+        [(-50, -50, 0), (50, -50, 0), (50, 50, 0), (-50, 50, 0)],
+        [(0, 1, 2), (0, 2, 3)],
+        np.eye(4),
+        cr.diffuse_material((alb, alb, alb)),
+    )
     cr.add_light("spot", "spot", cr.pose_matrix(np.eye(3), pos), (1, 1, 1), P, spot_size_deg=60.0, spot_blend=blend)
     imgs, secs = render_two_seeds(samples)
     I0 = P / FOUR_PI
@@ -283,6 +296,7 @@ def check_spot_plane(samples):
         def rad(d):
             cos_t = -d[..., 2]
             return ((alb / math.pi) * I0 * mask_fn(cos_t) * cos_t**3 / h**2)[..., None] * np.ones(3)
+
         return rad
 
     pred = blackman_harris_image(rad_mask(lambda c: spot_mask(c, size, blend)), look_down(), RES, 16.0)
@@ -330,6 +344,7 @@ def check_point_volume(samples, phase="HENYEY_GREENSTEIN", g=0.5, name="hg"):
     cr.set_world_media([(sig, np.zeros(3), (phase, g, None))])
     # Rebuild the scatter node with D and C as given (set_world_media normalises to D = 1)
     import bpy
+
     nt = bpy.context.scene.world.node_tree
     vs = [n for n in nt.nodes if n.bl_idname == "ShaderNodeVolumeScatter"][0]
     vs.inputs["Density"].default_value = D
@@ -350,13 +365,21 @@ def check_point_volume(samples, phase="HENYEY_GREENSTEIN", g=0.5, name="hg"):
     if phase == "HENYEY_GREENSTEIN":
         # sign test: the same with g → −g
         pneg = blackman_harris_image(
-            lambda d: volume_point_radiance(cam, d, light, lambda w: I * np.ones(w.shape[:-1] + (1,)), sig, sig,
-                                            lambda mu: phase_hg(mu, -g)), rot, RES, 20.0)
+            lambda d: volume_point_radiance(
+                cam, d, light, lambda w: I * np.ones(w.shape[:-1] + (1,)), sig, sig, lambda mu: phase_hg(mu, -g)
+            ),
+            rot,
+            RES,
+            20.0,
+        )
         out["ratio_if_g_negated"] = float(mean[far].sum() / pneg[far].sum())
     # without extinction (σ_t = 0), to show that extinction = D·C is measured
     p0 = blackman_harris_image(
         lambda d: volume_point_radiance(cam, d, light, lambda w: I * np.ones(w.shape[:-1] + (1,)), sig, 0 * sig, pf),
-        rot, RES, 20.0)
+        rot,
+        RES,
+        20.0,
+    )
     out["ratio_if_no_extinction"] = float(mean[far].sum() / p0[far].sum())
     out["formula"] = f"sigma_s = sigma_t = D*C, phase {phase} g={g}"
     out["seconds"] = secs
@@ -382,7 +405,8 @@ def check_spot_volume_rayleigh(samples):
         return (P / FOUR_PI * spot_mask(w @ axis, size, blend))[..., None] * np.ones(3)
 
     pred = blackman_harris_image(
-        lambda d: volume_point_radiance(cam, d, lpos, inten, sig, sig, phase_rayleigh, n=128), crot, RES, 24.0)
+        lambda d: volume_point_radiance(cam, d, lpos, inten, sig, sig, phase_rayleigh, n=128), crot, RES, 24.0
+    )
     far = far_from_light_mask(cam, crot, RES, 24.0, lpos)
     ps = pred.sum(-1)
     out = compare(imgs, pred, mask=far & (ps > 1e-3 * ps.max()))
@@ -391,7 +415,10 @@ def check_spot_volume_rayleigh(samples):
     mean = 0.5 * (imgs[0] + imgs[1])
     p_iso = blackman_harris_image(
         lambda d: volume_point_radiance(cam, d, lpos, inten, sig, sig, lambda mu: phase_hg(mu, 0.0), n=128),
-        crot, RES, 24.0)
+        crot,
+        RES,
+        24.0,
+    )
     m = far & (pred.sum(-1) > 1e-3 * pred.sum(-1).max())
     out["pixel_rel_dev_rms_if_isotropic"] = float(np.sqrt(np.mean(((mean[m] - p_iso[m]) / p_iso[m]) ** 2)))
     out["formula"] = "p = 3/(16 pi) (1 + mu^2); spot mask as spot_plane"
@@ -412,11 +439,15 @@ def ies_candela(v_deg, h_deg):
 
 def write_test_ies(path, multiplier=1.5):
     vals = ies_candela(IES_V[None, :], IES_H[:, None])
-    lines = ["IESNA:LM-63-2002", "[TEST] tyndall asymmetric test profile", "TILT=NONE",
-             f"1 -1 {multiplier} {len(IES_V)} {len(IES_H)} 1 2 0 0 0",
-             "1.0 1.0 100",
-             " ".join(f"{x:g}" for x in IES_V),
-             " ".join(f"{x:g}" for x in IES_H)]
+    lines = [
+        "IESNA:LM-63-2002",
+        "[TEST] tyndall asymmetric test profile",
+        "TILT=NONE",
+        f"1 -1 {multiplier} {len(IES_V)} {len(IES_H)} 1 2 0 0 0",
+        "1.0 1.0 100",
+        " ".join(f"{x:g}" for x in IES_V),
+        " ".join(f"{x:g}" for x in IES_H),
+    ]
     for row in vals:
         lines.append(" ".join(f"{x:.4f}" for x in row))
     with open(path, "w") as f:
@@ -435,8 +466,13 @@ def check_ies_plane(samples):
     path = os.path.join(tmp, "test.ies")
     write_test_ies(path, mult)
     setup(RES, samples, pos, look_down(), focal=16.0)
-    cr.add_mesh("plane", [(-50, -50, 0), (50, -50, 0), (50, 50, 0), (-50, 50, 0)], [(0, 1, 2), (0, 2, 3)],
-                np.eye(4), cr.diffuse_material((alb, alb, alb)))
+    cr.add_mesh(
+        "plane",
+        [(-50, -50, 0), (50, -50, 0), (50, 50, 0), (-50, 50, 0)],
+        [(0, 1, 2), (0, 2, 3)],
+        np.eye(4),
+        cr.diffuse_material((alb, alb, alb)),
+    )
     cr.add_light("point", "ies", cr.pose_matrix(np.eye(3), pos), (1, 1, 1), P, ies_path=path, ies_strength=strength)
     imgs, secs = render_two_seeds(samples)
     mean = 0.5 * (imgs[0] + imgs[1])
@@ -448,6 +484,7 @@ def check_ies_plane(samples):
             hh = np.degrees(hfun(d[..., 0], d[..., 1])) % 360.0
             I = P / FOUR_PI * strength * IES_CD_TO_W * mult * ies_candela(v, hh)
             return ((alb / math.pi) * I * cos_t**3 / h**2)[..., None] * np.ones(3)
+
         return rad
 
     cands = {
@@ -514,6 +551,7 @@ def check_soft_falloff(samples):
                     f = factor(r) if use_model else 1 / r**2
                     acc += w * np.exp(-sig[0] * (t + r)) * f
                 return (sig[0] * P / FOUR_PI / FOUR_PI * acc)[..., None] * np.ones(3)
+
             return rad
 
         pred = blackman_harris_image(rad_model(True), rot, RES, 30.0, sub=2)

@@ -183,8 +183,17 @@ def check_scene(scene):
             raise Unsupported(f"{f}.spot_size_deg: Blender's Spot Size is ≥ 1°, got {light['spot_size_deg']}")
         for k in light:
             if k not in (
-                "type", "name", "position", "orientation", "color", "power_w", "radius_m",
-                "spot_size_deg", "spot_blend", "ies", "distribution",
+                "type",
+                "name",
+                "position",
+                "orientation",
+                "color",
+                "power_w",
+                "radius_m",
+                "spot_size_deg",
+                "spot_blend",
+                "ies",
+                "distribution",
             ):
                 raise Unsupported(f"{f}.{k}: unknown field")
     for i, m in enumerate(scene.get("media", [])):
@@ -192,7 +201,7 @@ def check_scene(scene):
         if m.get("type") != "homogeneous":
             raise Unsupported(f"{f}: only homogeneous media are supported, got {m.get('type')!r}")
         if m.get("bounds", "world") != "world":
-            raise Unsupported(f"{f}.bounds: only \"world\" is supported")
+            raise Unsupported(f'{f}.bounds: only "world" is supported')
         coefficient_rgb(m["scattering"], f + ".scattering")
         coefficient_rgb(m.get("absorption", 0.0), f + ".absorption")
         map_phase(m.get("phase"), f + ".phase")
@@ -201,7 +210,7 @@ def check_scene(scene):
     if pf.get("type") not in ("blackman_harris", "none"):
         raise Unsupported(f"output.pixel_filter: unknown type {pf.get('type')!r}")
     if out.get("spectral", "auto") == "always":
-        raise Unsupported("output.spectral: \"always\" renders spectrally; Cycles renders RGB")
+        raise Unsupported('output.spectral: "always" renders spectrally; Cycles renders RGB')
 
 
 # --------------------------------------------------------------------------
@@ -273,8 +282,19 @@ def add_mesh(name, positions, triangles, matrix, material):
     return ob
 
 
-def add_light(kind, name, matrix, color, power_w, radius_m=0.0, spot_size_deg=45.0,
-              spot_blend=0.15, ies_path=None, ies_strength=1.0, soft_falloff=True):
+def add_light(
+    kind,
+    name,
+    matrix,
+    color,
+    power_w,
+    radius_m=0.0,
+    spot_size_deg=45.0,
+    spot_blend=0.15,
+    ies_path=None,
+    ies_strength=1.0,
+    soft_falloff=True,
+):
     """A Blender Point/Spot light. Colour channels > 1 are folded into the power."""
     bpy = _bpy()
     color = np.asarray(color, float)
@@ -364,8 +384,18 @@ def set_world_media(media):
     return world
 
 
-def add_camera(position, rot3, focal_mm=50.0, sensor_w=36.0, sensor_h=24.0, fit="auto",
-               shift_x=0.0, shift_y=0.0, clip_start=0.0, clip_end=None):
+def add_camera(
+    position,
+    rot3,
+    focal_mm=50.0,
+    sensor_w=36.0,
+    sensor_h=24.0,
+    fit="auto",
+    shift_x=0.0,
+    shift_y=0.0,
+    clip_start=0.0,
+    clip_end=None,
+):
     bpy = _bpy()
     cd = bpy.data.cameras.new("camera")
     cd.type = "PERSP"
@@ -386,8 +416,16 @@ def add_camera(position, rot3, focal_mm=50.0, sensor_w=36.0, sensor_h=24.0, fit=
     return ob
 
 
-def configure_render(resolution, samples, seed=0, filter_type="BLACKMAN_HARRIS", filter_width=1.5,
-                     threads=2, bounces_max=0, volume_bounces=0):
+def configure_render(
+    resolution,
+    samples,
+    seed=0,
+    filter_type="BLACKMAN_HARRIS",
+    filter_width=1.5,
+    threads=2,
+    bounces_max=0,
+    volume_bounces=0,
+):
     """Cycles settings for an unbiased single-scattering render (see docs/cycles-conventions.md)."""
     bpy = _bpy()
     scene = bpy.context.scene
@@ -502,17 +540,22 @@ def build_scene(scene, base_dir):
     cam = scene["camera"]
     rot = orientation_matrix(cam["orientation"], cam["position"])
     add_camera(
-        cam["position"], rot,
+        cam["position"],
+        rot,
         focal_mm=cam.get("focal_length_mm", 50.0),
         sensor_w=cam.get("sensor_width_mm", 36.0),
         sensor_h=cam.get("sensor_height_mm", 24.0),
         fit=cam.get("sensor_fit", "auto"),
-        shift_x=cam.get("shift_x", 0.0), shift_y=cam.get("shift_y", 0.0),
-        clip_start=cam.get("clip_start_m", 0.0), clip_end=cam.get("clip_end_m"),
+        shift_x=cam.get("shift_x", 0.0),
+        shift_y=cam.get("shift_y", 0.0),
+        clip_start=cam.get("clip_start_m", 0.0),
+        clip_end=cam.get("clip_end_m"),
     )
     black = black_material()
     for i, m in enumerate(scene.get("meshes", [])):
-        add_mesh(m.get("name") or f"mesh{i}", m["positions"], m["triangles"], transform_matrix(m.get("transform")), black)
+        add_mesh(
+            m.get("name") or f"mesh{i}", m["positions"], m["triangles"], transform_matrix(m.get("transform")), black
+        )
     for i, l in enumerate(scene.get("lights", [])):
         rotl = orientation_matrix(l.get("orientation", {"quaternion_wxyz": [1, 0, 0, 0]}), l["position"])
         ies = l.get("ies")
@@ -522,18 +565,26 @@ def build_scene(scene, base_dir):
             if not os.path.isfile(ies_path):
                 raise Unsupported(f"lights[{i}].ies.file: no such file {ies_path}")
         add_light(
-            l["type"], l.get("name") or l["type"], pose_matrix(rotl, l["position"]),
-            l.get("color", [1.0, 1.0, 1.0]), l.get("power_w", 1000.0), l.get("radius_m", 0.0),
-            l.get("spot_size_deg", 45.0), l.get("spot_blend", 0.15),
-            ies_path, (ies or {}).get("strength", 1.0),
+            l["type"],
+            l.get("name") or l["type"],
+            pose_matrix(rotl, l["position"]),
+            l.get("color", [1.0, 1.0, 1.0]),
+            l.get("power_w", 1000.0),
+            l.get("radius_m", 0.0),
+            l.get("spot_size_deg", 45.0),
+            l.get("spot_blend", 0.15),
+            ies_path,
+            (ies or {}).get("strength", 1.0),
         )
     media = []
     for i, m in enumerate(scene.get("media", [])):
-        media.append((
-            coefficient_rgb(m["scattering"], f"media[{i}].scattering"),
-            coefficient_rgb(m.get("absorption", 0.0), f"media[{i}].absorption"),
-            map_phase(m.get("phase"), f"media[{i}].phase"),
-        ))
+        media.append(
+            (
+                coefficient_rgb(m["scattering"], f"media[{i}].scattering"),
+                coefficient_rgb(m.get("absorption", 0.0), f"media[{i}].absorption"),
+                map_phase(m.get("phase"), f"media[{i}].phase"),
+            )
+        )
     set_world_media(media)
     pf = scene.get("output", {}).get("pixel_filter", {"type": "blackman_harris", "width_px": 1.5})
     if pf["type"] == "blackman_harris":
@@ -551,8 +602,9 @@ def main(argv=None):
     ap.add_argument("--samples", type=int, required=True)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--time-log", default=None, help="write render wall time (and noise with --half) as JSON")
-    ap.add_argument("--half", action="store_true",
-                    help="render two seeds with N/2 samples each; write their mean and log the noise")
+    ap.add_argument(
+        "--half", action="store_true", help="render two seeds with N/2 samples each; write their mean and log the noise"
+    )
     ap.add_argument("--float16", action="store_true", help="store the EXR as half floats")
     ap.add_argument("--threads", type=int, default=2)
     args = ap.parse_args(argv)
@@ -572,9 +624,17 @@ def main(argv=None):
         "resolution": list(res),
         "blender": _bpy().app.version_string,
         "settings": {
-            "device": "CPU", "threads": args.threads, "max_bounces": 0, "volume_bounces": 0,
-            "pixel_filter": ftype, "filter_width_px": fw, "adaptive_sampling": False, "denoising": False,
-            "light_tree": True, "light_sampling_threshold": 0.0, "view_transform": "Standard",
+            "device": "CPU",
+            "threads": args.threads,
+            "max_bounces": 0,
+            "volume_bounces": 0,
+            "pixel_filter": ftype,
+            "filter_width_px": fw,
+            "adaptive_sampling": False,
+            "denoising": False,
+            "light_tree": True,
+            "light_sampling_threshold": 0.0,
+            "view_transform": "Standard",
         },
     }
     if args.half:
@@ -588,17 +648,19 @@ def main(argv=None):
         rms_img = float(np.sqrt(np.mean(img.astype(np.float64) ** 2)))
         # E|A−B|² = 2σ²(N/2) = 4σ²(N): the standard error of the mean is rms(A−B)/2.
         rms_se = float(np.sqrt(np.mean(se**2)))
-        log.update({
-            "render_seconds": ta + tb,
-            "render_seconds_parts": [ta, tb],
-            "samples_per_part": n,
-            "seeds": [args.seed, args.seed + 1],
-            "noise_rms_abs": rms_se,
-            "image_rms": rms_img,
-            "noise_rel_rms": rms_se / rms_img if rms_img > 0 else None,
-            "noise_note": "noise_rms_abs = RMS over pixels and channels of |A-B|/2, the standard error "
-                          "of the stored mean of two half-sample renders A, B",
-        })
+        log.update(
+            {
+                "render_seconds": ta + tb,
+                "render_seconds_parts": [ta, tb],
+                "samples_per_part": n,
+                "seeds": [args.seed, args.seed + 1],
+                "noise_rms_abs": rms_se,
+                "image_rms": rms_img,
+                "noise_rel_rms": rms_se / rms_img if rms_img > 0 else None,
+                "noise_note": "noise_rms_abs = RMS over pixels and channels of |A-B|/2, the standard error "
+                "of the stored mean of two half-sample renders A, B",
+            }
+        )
     else:
         configure_render(res, args.samples, args.seed, ftype, fw, threads=args.threads)
         img, t = render_to_array()

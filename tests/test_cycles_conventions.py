@@ -45,9 +45,23 @@ def measured(tmp_path_factory: pytest.TempPathFactory) -> dict:
         pytest.skip("bpy is not importable (set TYNDALL_BPY_PYTHON to a Python with bpy 5.0)")
     out = tmp_path_factory.mktemp("cycles") / "conventions.json"
     subprocess.run(
-        [py, str(SCRIPT), "--samples", str(SAMPLES), "--json", str(out),
-         "--only", "point_plane", "spot_plane", "point_volume_hg", "spot_volume_rayleigh", "ies_plane"],
-        check=True, capture_output=True, timeout=1800,
+        [
+            py,
+            str(SCRIPT),
+            "--samples",
+            str(SAMPLES),
+            "--json",
+            str(out),
+            "--only",
+            "point_plane",
+            "spot_plane",
+            "point_volume_hg",
+            "spot_volume_rayleigh",
+            "ies_plane",
+        ],
+        check=True,
+        capture_output=True,
+        timeout=1800,
     )
     return json.loads(out.read_text())
 
