@@ -705,7 +705,7 @@ fn prepare_media<const C: usize>(scene: &Scene, lights: &LightSet<C>, report: &m
     }
     report.plan.left_out(
         "volumetric shadows of meshes",
-        "not modelled by the analytic fog path: meshes end view rays but do not shadow the medium (shadow volumes of stage lights are a separate feature)",
+        "for sun and ambient light (closed-form fog path) meshes end view rays but do not shadow the medium; point, spot and window lights do get exact mesh shadows",
     );
     out
 }

@@ -1,0 +1,75 @@
+"""Error against run time for a stage scene: Tyndall's tolerance sweep next to
+Cycles' sample sweep, both measured against the converged Cycles reference in
+tests/data/cycles (relative RMSE over the image).
+
+    python scripts/bench_stage_vs_cycles.py SCENE_NAME --bpy-python /path/to/python-with-bpy
+
+Writes a markdown table to stdout. Timings are wall times on this machine;
+Cycles' include scene building inside bpy (its own log gives render time only).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import OpenEXR
+import tyndall
+
+ROOT = Path(__file__).resolve().parent.parent
+DATA = ROOT / "tests" / "data" / "cycles"
+
+
+def read_rgb(path: Path) -> np.ndarray:
+    with OpenEXR.File(str(path)) as f:
+        ch = f.channels()
+        if "RGB" in ch:
+            return np.asarray(ch["RGB"].pixels, dtype=np.float64)
+        return np.stack([np.asarray(ch[k].pixels, dtype=np.float64) for k in ("R", "G", "B")], -1)
+
+
+def rel_rmse(a: np.ndarray, b: np.ndarray) -> float:
+    return float(np.sqrt(np.mean((a - b) ** 2)) / np.sqrt(np.mean(b**2)))
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("name")
+    ap.add_argument("--bpy-python", default="")
+    ap.add_argument("--samples", default="4,16,64,256,1024")
+    ap.add_argument("--tolerances", default="1e-1,1e-2,1e-3,1e-4,1e-6")
+    args = ap.parse_args()
+    scene_path = DATA / f"{args.name}.json"
+    ref = read_rgb(DATA / f"{args.name}.exr")
+    scene = json.loads(scene_path.read_text())
+    print(f"## {args.name}: relative RMSE against the converged Cycles reference\n")
+    print("| renderer | setting | wall time, s | relative RMSE |")
+    print("|---|---|---|---|")
+    for tol in [float(t) for t in args.tolerances.split(",")]:
+        s = json.loads(json.dumps(scene))
+        s["output"] = dict(s.get("output", {}), layers=["inscatter"], tolerance=tol, threads=2)
+        best = float("inf")
+        for _ in range(3):
+            t0 = time.perf_counter()
+            layers, report = tyndall.render(s)
+            best = min(best, time.perf_counter() - t0)
+        err = rel_rmse(layers["inscatter"].astype(np.float64), ref)
+        print(f"| Tyndall | tolerance {tol:g} | {best:.3f} | {err:.3%} |")
+    if args.bpy_python:
+        for n in [int(x) for x in args.samples.split(",")]:
+            with tempfile.TemporaryDirectory() as tmp:
+                out, log = Path(tmp) / "c.exr", Path(tmp) / "t.json"
+                cmd = [args.bpy_python, str(ROOT / "scripts" / "cycles_reference.py"), str(scene_path)]
+                cmd += ["--out", str(out), "--samples", str(n), "--seed", "7", "--time-log", str(log), "--threads", "2"]
+                subprocess.run(cmd, check=True, capture_output=True)
+                render_s = json.loads(log.read_text()).get("render_seconds", float("nan"))
+                print(f"| Cycles CPU | {n} samples | {render_s:.3f} | {rel_rmse(read_rgb(out), ref):.3%} |")
+
+
+if __name__ == "__main__":
+    main()
