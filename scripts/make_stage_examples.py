@@ -1,5 +1,6 @@
-"""Writes examples/stage_four_spots.json: 4 spot lights in haze over a 10k-triangle
-set piece (a UV sphere and a floor), 1920×1080 — the stage benchmark of issue 3."""
+"""Writes examples/bench/stage_four_spots.json: 4 spot lights in haze over a 10k-triangle
+set piece (a UV sphere and a floor), 1920×1080 — the stage benchmark of issue 3 — and
+examples/stage_four_spots.json, the same rig at 640×360 for `tyndall demo`."""
 
 from __future__ import annotations
 
@@ -81,9 +82,18 @@ def main() -> None:
             "tolerance": 1e-3,
         },
     }
-    out = Path(__file__).resolve().parent.parent / "examples" / "stage_four_spots.json"
+    root = Path(__file__).resolve().parent.parent / "examples"
+    out = root / "bench" / "stage_four_spots.json"
+    out.parent.mkdir(exist_ok=True)
     out.write_text(json.dumps(scene))
     print(f"{out}: {sum(len(m['triangles']) for m in scene['meshes'])} triangles")
+    # The demo's stage: the same rig with a coarser sphere, 640×360, Blender's pixel filter.
+    demo = json.loads(json.dumps(scene))
+    demo["meshes"][0] = uv_sphere(0.0, 0.0, 1.5, 1.0, 24, 32)
+    demo["camera"]["resolution"] = [640, 360]
+    demo["output"]["tolerance"] = 1e-3
+    (root / "stage_four_spots.json").write_text(json.dumps(demo, indent=1))
+    print(f"{root / 'stage_four_spots.json'}: demo stage")
 
 
 if __name__ == "__main__":

@@ -40,7 +40,9 @@ def render_inscatter(name: str) -> np.ndarray:
     return layers["inscatter"].astype(np.float64)
 
 
-@pytest.mark.parametrize("name", ["narrow_beam_5deg", "camera_in_dense_beam", "two_coloured_spots"])
+@pytest.mark.parametrize(
+    "name", ["spot_box_occluder", "narrow_beam_5deg", "camera_in_dense_beam", "two_coloured_spots"]
+)
 def test_inscatter_matches_converged_cycles(name: str) -> None:
     ref = read_rgb(DATA / f"{name}.exr")
     got = render_inscatter(name)
@@ -50,16 +52,15 @@ def test_inscatter_matches_converged_cycles(name: str) -> None:
     assert rmse <= 0.01
 
 
-def test_spot_with_occluder_matches_cycles_away_from_the_light_image() -> None:
-    """The occluder's shadow shaft matches; the 6×6 px around the light's own
-    image (an integrable 1/r singularity under the pixel filter) do not yet —
-    the full-image figure is printed and reported in the issue."""
+def test_spot_with_occluder_shadow_shaft_matches_cycles() -> None:
+    """Away from the light's own image (where the pixel filter integrates a 1/r
+    singularity and Cycles' noise is largest) the shadow shaft of the box matches
+    to well under the whole-image figure."""
     name = "spot_box_occluder"
     ref = read_rgb(DATA / f"{name}.exr")
     got = render_inscatter(name)
-    full = relative_rmse(got, ref)
     mask = np.ones(ref.shape[:2], dtype=bool)
     mask[3:9, 45:51] = False
     away = relative_rmse(got[mask], ref[mask])
-    print(f"{name}: relative RMSE {full:.4%} over the image, {away:.4%} outside the light's 6x6 px")
-    assert away <= 0.01
+    print(f"{name}: relative RMSE {away:.4%} outside the light's 6x6 px")
+    assert away <= 0.006

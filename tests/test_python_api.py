@@ -66,6 +66,10 @@ def test_render_each_example_returns_float32_layers(path: Path) -> None:
     raw = json.loads(path.read_text())
     width, height = raw["camera"]["resolution"]
     wanted = set(raw.get("output", {}).get("layers", DEFAULT_LAYERS))
+    if "inscatter_per_light" in wanted:
+        # One `inscatter.<name>` layer per point, spot and window light.
+        wanted.remove("inscatter_per_light")
+        wanted |= {f"inscatter.{lt['name']}" for lt in raw["lights"] if lt["type"] in ("point", "spot", "window")}
     layers, report = tyndall.render(tyndall.load_scene(path))
     assert isinstance(layers, dict)
     assert set(layers) == wanted

@@ -1224,13 +1224,31 @@ fn render_channels<const C: usize>(scene: &Scene, report: &mut Report, progress:
             }
             false
         };
+        // The scale errors of the filtered image are measured against: the
+        // brightest centre sample within the filter's window. A dark pixel next
+        // to a bright beam is filtered to a tolerance of what its window sees,
+        // not of its own (tiny) value — the pixel-filter error is an image-space
+        // error, and this is the norm in which it is reported (edge_*).
+        let window_scale = |i: usize| -> f64 {
+            let (x, y) = ((i % w) as isize, (i / w) as isize);
+            let mut m = 0.0f64;
+            for dy in -reach..=reach {
+                for dx in -reach..=reach {
+                    let (nx, ny) = (x + dx, y + dy);
+                    if nx >= 0 && ny >= 0 && (nx as usize) < w && (ny as usize) < h {
+                        m = m.max(lmax(ny as usize * w + nx as usize));
+                    }
+                }
+            }
+            m
+        };
         // Classify every pixel: either its centre sample stands (with the
         // Laplacian term as its filter error) or it needs the filter integral.
         let classified: Vec<(Option<usize>, [f64; 3], f64)> = (0..n)
             .into_par_iter()
             .map(|i| {
                 let (el, et) = lap(i);
-                let m = lmax(i);
+                let m = window_scale(i);
                 if et > tolerance || el.iter().any(|e| *e > tolerance * m) || silhouette(i) {
                     (Some(i), [0.0; 3], 0.0)
                 } else {
@@ -1241,6 +1259,31 @@ fn render_channels<const C: usize>(scene: &Scene, report: &mut Report, progress:
                     };
                     (None, el, rel)
                 }
+            })
+            .collect();
+        // The Laplacian stencil sees ±1 px around a centre, the filter window
+        // ±1.5 px: a pixel next to a flagged one may have the feature inside its
+        // window although its own stencil is flat (e.g. the image of a point
+        // light just below a row of zeros), so the flagged set is dilated by one
+        // pixel (8-neighbourhood).
+        let flagged: Vec<bool> = classified.iter().map(|c| c.0.is_some()).collect();
+        let classified: Vec<(Option<usize>, [f64; 3], f64)> = classified
+            .into_iter()
+            .enumerate()
+            .map(|(i, c)| {
+                if c.0.is_some() {
+                    return c;
+                }
+                let (x, y) = ((i % w) as isize, (i / w) as isize);
+                for dy in -1..=1isize {
+                    for dx in -1..=1isize {
+                        let (nx, ny) = (x + dx, y + dy);
+                        if nx >= 0 && ny >= 0 && (nx as usize) < w && (ny as usize) < h && flagged[ny as usize * w + nx as usize] {
+                            return (Some(i), [0.0; 3], 0.0);
+                        }
+                    }
+                }
+                c
             })
             .collect();
         let mut lap_abs = 0.0f64;
@@ -1262,16 +1305,40 @@ fn render_channels<const C: usize>(scene: &Scene, report: &mut Report, progress:
         }
         stats.max_abs += lap_abs;
         stats.max_rel += lap_rel;
-        let filtered: Vec<(usize, Sample, [f64; 3], usize)> = edges
+        // Pixels whose filter window holds the image of a point light: the
+        // in-scatter there has an integrable 1/r singularity, which the n×n
+        // midpoint rule resolves only at larger n.
+        let light_dirs: Vec<DVec3> = stage_lights
+            .points
+            .iter()
+            .filter_map(|p| (p.light.position - cam.position).try_normalize())
+            .collect();
+        let near_light_image = |x: f64, y: f64| -> bool {
+            if light_dirs.is_empty() {
+                return false;
+            }
+            let d = cam.direction(x, y);
+            let px = (cam.direction(x + 1.0, y) - d)
+                .length()
+                .max((cam.direction(x, y + 1.0) - d).length());
+            light_dirs.iter().any(|l| (*l - d).length() <= (filter.radius() + 1.0) * px)
+        };
+        let filtered: Vec<(usize, Sample, [f64; 3], usize, f64)> = edges
             .par_iter()
             .map(|&i| {
                 let (x, y) = ((i % w) as f64 + 0.5, (i / w) as f64 + 0.5);
-                let (s, err, per_axis) = filter_pixel(&filter, x, y, tolerance, &sample);
-                (i, s, err, per_axis)
+                let max_n = if near_light_image(x, y) {
+                    MAX_FILTER_SAMPLES_NEAR_LIGHT
+                } else {
+                    MAX_FILTER_SAMPLES_PER_AXIS
+                };
+                let scale = window_scale(i);
+                let (s, err, per_axis) = filter_pixel(&filter, x, y, tolerance, scale, max_n, &sample);
+                (i, s, err, per_axis, scale)
             })
             .collect();
         edge.pixels = filtered.len() as u64;
-        for (i, s, err, per_axis) in &filtered {
+        for (i, s, err, per_axis, scale) in &filtered {
             edge.samples += (per_axis * per_axis) as u64;
             inscatter[*i] = s.l.map(|v| v as f32);
             for (k, img) in light_inscatter.iter_mut().enumerate() {
@@ -1284,7 +1351,7 @@ fn render_channels<const C: usize>(scene: &Scene, report: &mut Report, progress:
             if want_error {
                 error[*i] = err.map(|v| v as f32);
             }
-            let m = s.l.iter().fold(0.0f64, |a, v| a.max(v.abs()));
+            let m = s.l.iter().fold(0.0f64, |a, v| a.max(v.abs())).max(*scale);
             let e_max = err.iter().fold(0.0f64, |a, v| a.max(*v));
             let rel = if m > 0.0 { e_max / m } else { 0.0 };
             edge.max_abs = edge.max_abs.max(e_max);
@@ -1296,7 +1363,7 @@ fn render_channels<const C: usize>(scene: &Scene, report: &mut Report, progress:
         report.plan.computed(
             format!("pixel filter integral on {} pixels (silhouettes, sharp medium boundaries)", filtered.len()),
             format!(
-                "Blackman-Harris, filter size {:.2} px (Blender's; window ±{:.2} px as Cycles doubles it), n×n midpoint rule doubling from 4 to {MAX_FILTER_SAMPLES_PER_AXIS} per axis until two estimates agree to the tolerance: {} samples",
+                "Blackman-Harris, filter size {:.2} px (Blender's; window ±{:.2} px as Cycles doubles it), n×n midpoint rule doubling from 4 to {MAX_FILTER_SAMPLES_PER_AXIS} per axis ({MAX_FILTER_SAMPLES_NEAR_LIGHT} where the window holds a point light's image) until two estimates agree to the tolerance: {} samples",
                 filter.radius(),
                 filter.radius(),
                 edge.samples
@@ -1495,6 +1562,8 @@ fn surface_changes(a: u32, b: u32, owner: &[u32]) -> bool {
 
 /// Largest n of the n×n filter integral at silhouettes.
 const MAX_FILTER_SAMPLES_PER_AXIS: usize = 16;
+/// Largest n where the window holds a point light's image.
+const MAX_FILTER_SAMPLES_NEAR_LIGHT: usize = 64;
 
 /// The filtered value of one pixel: n×n midpoint rule over the filter's
 /// support, n = 4, 8, 16, until two successive estimates agree to
@@ -1505,6 +1574,8 @@ fn filter_pixel(
     x: f64,
     y: f64,
     tolerance: f64,
+    scale_floor: f64,
+    max_per_axis: usize,
     sample: &(dyn Fn(f64, f64) -> Sample + Sync),
 ) -> (Sample, [f64; 3], usize) {
     let estimate = |n: usize| -> Sample {
@@ -1544,8 +1615,8 @@ fn filter_pixel(
         for c in 0..3 {
             err[c] = (fine.l[c] - coarse.l[c]).abs() + fine.e[c];
         }
-        let scale = fine.l.iter().fold(0.0f64, |m, v| m.max(v.abs()));
-        if n >= MAX_FILTER_SAMPLES_PER_AXIS || err.iter().all(|e| *e <= tolerance * scale) {
+        let scale = fine.l.iter().fold(0.0f64, |m, v| m.max(v.abs())).max(scale_floor);
+        if n >= max_per_axis || err.iter().all(|e| *e <= tolerance * scale) {
             return (fine, err, n);
         }
         coarse = fine;

@@ -1,0 +1,333 @@
+"""Plain-data records of a Blender scene and the Tyndall scene dict built from them (no bpy).
+
+The bpy side (``..gather``) fills these records on the main thread; :func:`build_scene`
+checks them and returns a dict in the format of docs/scene-format.md. Every problem
+raises :class:`SceneInputError` with a message meant for the operator report.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass, field
+from typing import Any
+
+from . import conversions as cv
+
+DEFAULT_LAYERS: tuple[str, ...] = ("inscatter", "transmittance", "depth", "error", "inscatter_per_light")
+MAX_PER_LIGHT_LAYERS = 16  # core/src/render/stage.rs MAX_LIGHT_LAYERS
+
+
+class SceneInputError(ValueError):
+    """The Blender scene cannot be computed; the message names the object and the setting."""
+
+
+@dataclass
+class IesData:
+    """An IES Texture node in a light's node tree."""
+
+    node: str
+    mode: str  # "EXTERNAL" (filepath) or "INTERNAL" (text datablock)
+    filepath: str = ""  # absolute path (EXTERNAL)
+    text: str | None = None  # file contents (INTERNAL)
+    text_name: str = ""
+    strength: float = 1.0
+
+
+@dataclass
+class LightData:
+    """A Blender light object."""
+
+    name: str
+    kind: str  # Blender Light.type: POINT, SPOT, SUN, AREA
+    matrix: list[list[float]]  # 4×4 rows of matrix_world
+    color: tuple[float, float, float]
+    energy: float
+    exposure: float = 0.0
+    radius: float = 0.0
+    spot_size: float = math.radians(45.0)  # radians, as the RNA
+    spot_blend: float = 0.15
+    sun_angle: float = math.radians(0.526)  # radians
+    ies: IesData | None = None
+    colour_note: str = ""  # e.g. "× Emission Color (0.5, …)"
+
+
+@dataclass
+class MediumData:
+    """The world volume, reduced to homogeneous coefficients."""
+
+    node: str  # node names for messages
+    scattering: tuple[float, float, float]
+    absorption: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    phase: dict[str, Any] = field(default_factory=lambda: {"type": "isotropic"})
+
+
+@dataclass
+class CameraData:
+    """The active camera and the render settings."""
+
+    name: str
+    matrix: list[list[float]]
+    lens_mm: float
+    sensor_width_mm: float
+    sensor_height_mm: float
+    sensor_fit: str  # AUTO, HORIZONTAL, VERTICAL
+    shift_x: float
+    shift_y: float
+    clip_start: float
+    clip_end: float
+    resolution: tuple[int, int]
+    cam_type: str = "PERSP"
+    filter_type: str = "BLACKMAN_HARRIS"
+    filter_size_px: float = 1.5
+
+
+@dataclass
+class MeshData:
+    """An evaluated mesh (occluder) in object space with its world matrix."""
+
+    name: str
+    positions: list[tuple[float, float, float]]
+    triangles: list[tuple[int, int, int]]
+    matrix: list[list[float]]
+
+
+@dataclass
+class SceneData:
+    """Everything gathered from one Blender scene."""
+
+    camera: CameraData | None
+    lights: list[LightData]
+    media: list[MediumData]
+    meshes: list[MeshData]
+    unit_scale: float = 1.0  # metres per Blender unit (Scene.unit_settings.scale_length)
+    skipped: list[str] = field(default_factory=list)  # "<object>: <reason>" gathered but left out
+    tolerance: float = 1e-4
+    threads: int = 0
+    layers: tuple[str, ...] = DEFAULT_LAYERS
+    include_sun: bool = False  # sun lamps light the medium (Cycles extinguishes them in a world volume)
+
+
+@dataclass
+class BuiltScene:
+    """The Tyndall scene dict, the IES files it needs written next to it, and notes for the user."""
+
+    scene: dict[str, Any]
+    ies_texts: dict[str, str]  # file name (relative to the scene folder) → contents of internal IES texts
+    light_names: dict[str, str]  # Blender object name → Tyndall light name (= EXR layer inscatter.<name>)
+    notes: list[str]
+
+
+def _scaled_rows(m: list[list[float]], s: float) -> list[list[float]]:
+    """Rows of diag(s, s, s, 1) · m, checked finite."""
+    out = []
+    for r in range(4):
+        row = []
+        for c in range(4):
+            v = float(m[r][c]) * (s if r < 3 else 1.0)
+            if not math.isfinite(v):
+                raise SceneInputError(f"non-finite transform entry [{r}][{c}] = {v}")
+            row.append(v)
+        out.append(row)
+    return out
+
+
+def _position(m: list[list[float]], s: float) -> list[float]:
+    return [float(m[r][3]) * s for r in range(3)]
+
+
+def _camera(c: CameraData, s: float) -> dict[str, Any]:
+    if c.cam_type != "PERSP":
+        raise SceneInputError(f"camera '{c.name}': only perspective cameras are supported (got {c.cam_type})")
+    w, h = c.resolution
+    if w < 1 or h < 1:
+        raise SceneInputError(f"render resolution {w}×{h} is empty")
+    try:
+        q = cv.quaternion_wxyz_from_rows(c.matrix)
+    except cv.ConversionError as e:
+        raise SceneInputError(f"camera '{c.name}': {e}") from e
+    fit = {"AUTO": "auto", "HORIZONTAL": "horizontal", "VERTICAL": "vertical"}[c.sensor_fit]
+    clip_end = c.clip_end * s
+    return {
+        "type": "perspective",
+        "position": _position(c.matrix, s),
+        "orientation": {"quaternion_wxyz": list(q)},
+        "focal_length_mm": c.lens_mm,
+        "sensor_width_mm": c.sensor_width_mm,
+        "sensor_height_mm": c.sensor_height_mm,
+        "sensor_fit": fit,
+        "shift_x": c.shift_x,
+        "shift_y": c.shift_y,
+        "resolution": [int(w), int(h)],
+        "clip_start_m": max(c.clip_start * s, 0.0),
+        "clip_end_m": clip_end if math.isfinite(clip_end) and clip_end > c.clip_start * s else None,
+    }
+
+
+def _pixel_filter(c: CameraData, notes: list[str]) -> dict[str, Any]:
+    width = min(max(float(c.filter_size_px), 0.01), 10.0)
+    if c.filter_type != "BLACKMAN_HARRIS":
+        notes.append(
+            f"pixel filter {c.filter_type.replace('_', ' ').title()} is not modelled: Blackman-Harris "
+            f"{width:g} px used instead"
+        )
+    if width <= 0.01:
+        return {"type": "none"}
+    return {"type": "blackman_harris", "width_px": width}
+
+
+def _light(
+    light: LightData, name: str, s: float, ies_texts: dict[str, str], notes: list[str], include_sun: bool
+) -> dict[str, Any] | None:
+    where = f"light '{light.name}'"
+    try:
+        color = cv.rgb("Color", light.color)
+        matrix = light.matrix
+        q = cv.quaternion_wxyz_from_rows(matrix)
+        if light.kind == "SUN":
+            if not include_sun:
+                notes.append(
+                    f"{light.name}: sun lamp left out of the volumetrics (Cycles extinguishes a sun behind an "
+                    "infinite world volume; enable 'Sun lamps' to light the medium with it)"
+                )
+                return None
+            z = [float(matrix[r][2]) for r in range(3)]
+            return {
+                "type": "sun",
+                "name": name,
+                "direction_to_sun": z,
+                "color": list(color),
+                "strength_w_m2": cv.light_power_w(light.energy, light.exposure),
+                "angular_diameter_deg": min(max(math.degrees(cv.finite("Angle", light.sun_angle)), 0.0), 180.0),
+            }
+        if light.kind not in ("POINT", "SPOT"):
+            notes.append(f"{light.name}: {light.kind.lower()} lights are not supported by Tyndall, left out")
+            return None
+        power = cv.light_power_w(light.energy, light.exposure)
+        radius = cv.finite("Radius", light.radius) * s
+        if radius < 0.0:
+            raise cv.ConversionError(f"Radius must be ≥ 0, got {radius}")
+        d: dict[str, Any] = {
+            "type": light.kind.lower(),
+            "name": name,
+            "position": _position(matrix, s),
+            "orientation": {"quaternion_wxyz": list(q)},
+            "color": list(color),
+            "power_w": power,
+            "radius_m": radius,
+        }
+        if light.kind == "SPOT":
+            d["spot_size_deg"] = cv.spot_size_deg(light.spot_size)
+            d["spot_blend"] = cv.spot_blend(light.spot_blend)
+        if light.ies is not None:
+            d["ies"] = _ies(light, name, ies_texts)
+        return d
+    except cv.ConversionError as e:
+        raise SceneInputError(f"{where}: {e}") from e
+
+
+def _ies(light: LightData, name: str, ies_texts: dict[str, str]) -> dict[str, Any]:
+    ies = light.ies
+    assert ies is not None
+    strength = cv.finite(f"IES node '{ies.node}' Strength", ies.strength)
+    if strength < 0.0:
+        raise cv.ConversionError(f"IES node '{ies.node}' Strength must be ≥ 0, got {strength}")
+    if ies.mode == "EXTERNAL":
+        if not ies.filepath:
+            raise cv.ConversionError(f"IES node '{ies.node}' has no file path")
+        if not os.path.isfile(ies.filepath):
+            raise cv.ConversionError(f"IES node '{ies.node}': file not found: {ies.filepath}")
+        return {"file": os.path.abspath(ies.filepath), "strength": strength}
+    if not ies.text:
+        raise cv.ConversionError(f"IES node '{ies.node}' uses an internal text, but none is set or it is empty")
+    fname = f"ies/{name}.ies"
+    ies_texts[fname] = ies.text
+    return {"file": fname, "strength": strength}
+
+
+def build_scene(data: SceneData) -> BuiltScene:
+    """Check ``data`` and build the Tyndall scene dict.
+
+    IES profiles kept in Blender text datablocks are returned in ``ies_texts`` with paths
+    relative to the scene file; the caller writes them next to ``scene.json`` (relative
+    ``ies.file`` paths are resolved against the scene's folder, or the working directory
+    for scenes given as dicts: :func:`resolve_ies_paths` makes them absolute).
+    """
+    notes: list[str] = list(data.skipped)
+    s = cv.finite("unit scale", data.unit_scale)
+    if s <= 0.0:
+        raise SceneInputError(f"unit scale must be > 0, got {s}")
+    if data.camera is None:
+        raise SceneInputError("the scene has no active camera: add a camera and make it active")
+    camera = _camera(data.camera, s)
+    if not data.lights:
+        raise SceneInputError("the scene has no lights: add a point, spot or sun light")
+    if not data.media:
+        raise SceneInputError(
+            "the scene has no participating medium: connect a Volume Scatter or Principled Volume "
+            "to the World Output's Volume input"
+        )
+
+    names = cv.unique_names([lt.name for lt in data.lights])
+    ies_texts: dict[str, str] = {}
+    lights: list[dict[str, Any]] = []
+    light_names: dict[str, str] = {}
+    for light, name in zip(data.lights, names, strict=True):
+        d = _light(light, name, s, ies_texts, notes, data.include_sun)
+        if d is not None:
+            lights.append(d)
+            light_names[light.name] = name
+    if not lights:
+        raise SceneInputError("the scene has no light Tyndall supports (point, spot, sun)")
+
+    media: list[dict[str, Any]] = []
+    for m in data.media:
+        sig_s = [float(v) / s for v in m.scattering]
+        sig_a = [float(v) / s for v in m.absorption]
+        if not all(math.isfinite(v) and v >= 0.0 for v in sig_s + sig_a):
+            raise SceneInputError(f"medium '{m.node}': coefficients must be finite and ≥ 0, got {sig_s}, {sig_a}")
+        media.append(
+            {"type": "homogeneous", "name": m.node, "scattering": sig_s, "absorption": sig_a, "phase": m.phase}
+        )
+    if all(max(m["scattering"]) + max(m["absorption"]) <= 0.0 for m in media):
+        raise SceneInputError("the world volume has zero density: nothing to compute")
+
+    meshes = []
+    for mesh in data.meshes:
+        if not mesh.triangles:
+            continue
+        meshes.append(
+            {
+                "name": mesh.name,
+                "positions": [list(p) for p in mesh.positions],
+                "triangles": [list(t) for t in mesh.triangles],
+                "transform": {"matrix": _scaled_rows(mesh.matrix, s)},
+            }
+        )
+
+    layers = list(data.layers)
+    n_stage = sum(1 for lt in lights if lt["type"] in ("point", "spot"))
+    if "inscatter_per_light" in layers and n_stage > MAX_PER_LIGHT_LAYERS:
+        layers.remove("inscatter_per_light")
+        notes.append(f"{n_stage} lights: more than {MAX_PER_LIGHT_LAYERS}, no per-light layers")
+    output: dict[str, Any] = {
+        "layers": layers,
+        "tolerance": data.tolerance,
+        "threads": data.threads,
+        "pixel_filter": _pixel_filter(data.camera, notes),
+    }
+    scene = {"version": 1, "camera": camera, "meshes": meshes, "lights": lights, "media": media, "output": output}
+    return BuiltScene(scene=scene, ies_texts=ies_texts, light_names=light_names, notes=notes)
+
+
+def resolve_ies_paths(scene: dict[str, Any], folder: str) -> dict[str, Any]:
+    """A copy of ``scene`` whose relative ``ies.file`` paths are made absolute against ``folder``."""
+    out = dict(scene)
+    out["lights"] = []
+    for lt in scene.get("lights", []):
+        lt = dict(lt)
+        ies = lt.get("ies")
+        if ies is not None and not os.path.isabs(ies["file"]):
+            lt["ies"] = {**ies, "file": os.path.join(folder, ies["file"])}
+        out["lights"].append(lt)
+    return out

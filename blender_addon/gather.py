@@ -1,0 +1,287 @@
+"""Read a Blender scene into the plain records of :mod:`.core.scene_build` (main thread only)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import bpy
+import numpy as np
+
+from .core import conversions as cv
+from .core.scene_build import CameraData, IesData, LightData, MediumData, MeshData, SceneData, SceneInputError
+
+
+def _rows(m: Any) -> list[list[float]]:
+    return [[float(m[r][c]) for c in range(4)] for r in range(4)]
+
+
+def _unlinked(node: bpy.types.Node, name: str, where: str) -> Any:
+    sock = node.inputs.get(name)
+    if sock is None:
+        raise SceneInputError(f"{where}: node '{node.name}' has no input '{name}'")
+    if sock.is_linked:
+        raise SceneInputError(
+            f"{where}: input '{name}' of node '{node.name}' is linked; Tyndall needs a constant value "
+            "(textures and attributes are not supported)"
+        )
+    v = sock.default_value
+    return tuple(v) if hasattr(v, "__len__") else float(v)
+
+
+def _linked_from(sock: bpy.types.NodeSocket) -> bpy.types.Node | None:
+    for link in sock.links:
+        if link.is_valid and not link.is_muted and not link.from_node.mute:
+            node = link.from_node
+            while node.type == "REROUTE":
+                if not node.inputs[0].is_linked:
+                    return None
+                node = node.inputs[0].links[0].from_node
+            return node
+    return None
+
+
+def _active_output(tree: bpy.types.NodeTree, idname: str) -> bpy.types.Node | None:
+    outs = [n for n in tree.nodes if n.bl_idname == idname and not n.mute]
+    for n in outs:
+        if getattr(n, "is_active_output", False) and getattr(n, "target", "ALL") in ("ALL", "CYCLES"):
+            return n
+    return outs[0] if outs else None
+
+
+# -- world volume --------------------------------------------------------------
+
+
+def _volume_nodes(node: bpy.types.Node, where: str, out: list[bpy.types.Node]) -> None:
+    if node.bl_idname == "ShaderNodeAddShader":
+        for sock in node.inputs:
+            child = _linked_from(sock)
+            if child is not None:
+                _volume_nodes(child, where, out)
+        return
+    if node.bl_idname in ("ShaderNodeVolumeScatter", "ShaderNodeVolumeAbsorption", "ShaderNodeVolumePrincipled"):
+        out.append(node)
+        return
+    raise SceneInputError(
+        f"{where}: node '{node.name}' ({node.bl_label}) is not supported; use Volume Scatter, Volume Absorption "
+        "or Principled Volume (optionally combined with Add Shader)"
+    )
+
+
+def gather_world_medium(world: bpy.types.World | None) -> list[MediumData]:
+    """The World Output's Volume input as one homogeneous medium (empty list when there is none)."""
+    if world is None or world.node_tree is None:
+        return []
+    where = f"world '{world.name}'"
+    out = _active_output(world.node_tree, "ShaderNodeOutputWorld")
+    if out is None:
+        return []
+    root = _linked_from(out.inputs["Volume"])
+    if root is None:
+        return []
+    nodes: list[bpy.types.Node] = []
+    _volume_nodes(root, where, nodes)
+    sig_s = [0.0, 0.0, 0.0]
+    sig_a = [0.0, 0.0, 0.0]
+    phases: list[tuple[str, dict[str, Any]]] = []
+    try:
+        for n in nodes:
+            w = f"{where}, node '{n.name}'"
+            if n.bl_idname == "ShaderNodeVolumeScatter":
+                s = cv.volume_scatter_sigma_s(_unlinked(n, "Density", w), _unlinked(n, "Color", w))
+                # sockets of other phases are unavailable (Mie has no Anisotropy): read only what applies
+                g = _unlinked(n, "Anisotropy", w) if n.phase in ("HENYEY_GREENSTEIN", "DRAINE") else 0.0
+                alpha = _unlinked(n, "Alpha", w) if n.phase == "DRAINE" else 1.0
+                phase = cv.phase_from_volume_scatter(n.phase, g, alpha)
+                if max(s) > 0.0:
+                    phases.append((n.name, phase))
+                sig_s = [a + b for a, b in zip(sig_s, s, strict=True)]
+            elif n.bl_idname == "ShaderNodeVolumeAbsorption":
+                a = cv.volume_absorption_sigma_a(_unlinked(n, "Density", w), _unlinked(n, "Color", w))
+                sig_a = [x + y for x, y in zip(sig_a, a, strict=True)]
+            else:
+                if (
+                    float(_unlinked(n, "Emission Strength", w)) > 0.0
+                    or float(_unlinked(n, "Blackbody Intensity", w)) > 0
+                ):
+                    raise SceneInputError(f"{w}: volume emission is not supported by Tyndall")
+                s, a = cv.principled_volume_coefficients(
+                    _unlinked(n, "Density", w), _unlinked(n, "Color", w), _unlinked(n, "Absorption Color", w)
+                )
+                if max(s) > 0.0:
+                    phases.append((n.name, cv.phase_from_principled_volume(_unlinked(n, "Anisotropy", w))))
+                sig_s = [x + y for x, y in zip(sig_s, s, strict=True)]
+                sig_a = [x + y for x, y in zip(sig_a, a, strict=True)]
+    except cv.ConversionError as e:
+        raise SceneInputError(f"{where}: {e}") from e
+    distinct = {repr(p) for _n, p in phases}
+    if len(distinct) > 1:
+        raise SceneInputError(f"{where}: scattering nodes with different phase functions are not supported ({phases})")
+    phase = phases[0][1] if phases else {"type": "isotropic"}
+    name = "+".join(n.name for n in nodes)
+    return [MediumData(node=name, scattering=tuple(sig_s), absorption=tuple(sig_a), phase=phase)]
+
+
+# -- lights --------------------------------------------------------------------
+
+
+def _light_nodes(obj: bpy.types.Object, light: bpy.types.Light) -> tuple[IesData | None, float, tuple[float, ...]]:
+    """(IES, strength factor, colour factor) from a light's node tree (Emission [+ IES Texture])."""
+    tree = light.node_tree
+    if tree is None or not getattr(light, "use_nodes", True):
+        return None, 1.0, (1.0, 1.0, 1.0)
+    where = f"light '{obj.name}'"
+    out = _active_output(tree, "ShaderNodeOutputLight")
+    if out is None:
+        return None, 1.0, (1.0, 1.0, 1.0)
+    em = _linked_from(out.inputs["Surface"])
+    if em is None:
+        return None, 0.0, (1.0, 1.0, 1.0)
+    if em.bl_idname != "ShaderNodeEmission":
+        raise SceneInputError(f"{where}: light node '{em.name}' is not supported (use Emission, optionally with IES)")
+    color = _unlinked(em, "Color", where)
+    ies_node = _linked_from(em.inputs["Strength"])
+    if ies_node is None:
+        return None, float(_unlinked(em, "Strength", where)), color
+    if ies_node.bl_idname != "ShaderNodeTexIES":
+        raise SceneInputError(
+            f"{where}: Emission Strength is driven by '{ies_node.name}'; only an IES Texture node is supported there"
+        )
+    strength = float(_unlinked(ies_node, "Strength", where))
+    if ies_node.inputs["Vector"].is_linked:
+        raise SceneInputError(f"{where}: IES node '{ies_node.name}' has a linked Vector input (not supported)")
+    if ies_node.mode == "EXTERNAL":
+        path = bpy.path.abspath(ies_node.filepath) if ies_node.filepath else ""
+        ies = IesData(node=ies_node.name, mode="EXTERNAL", filepath=path, strength=strength)
+    else:
+        text = ies_node.ies
+        ies = IesData(
+            node=ies_node.name,
+            mode="INTERNAL",
+            text=text.as_string() if text is not None else None,
+            text_name=text.name if text is not None else "",
+            strength=strength,
+        )
+    return ies, 1.0, color
+
+
+def gather_lights(scene: bpy.types.Scene) -> list[LightData]:
+    """Every render-visible light object of ``scene``."""
+    out = []
+    for obj in scene.objects:
+        if obj.type != "LIGHT" or obj.hide_render:
+            continue
+        light = obj.data
+        color = tuple(light.color)
+        if getattr(light, "use_temperature", False):
+            color = tuple(c * t for c, t in zip(color, light.temperature_color, strict=True))
+        ies, k, node_color = (None, 1.0, (1.0, 1.0, 1.0))
+        if light.type in ("POINT", "SPOT"):
+            ies, k, node_color = _light_nodes(obj, light)
+        color = tuple(c * n for c, n in zip(color, node_color[:3], strict=True))
+        out.append(
+            LightData(
+                name=obj.name,
+                kind=light.type,
+                matrix=_rows(obj.matrix_world),
+                color=(color[0], color[1], color[2]),
+                energy=float(light.energy) * k,
+                exposure=float(getattr(light, "exposure", 0.0)),
+                radius=float(getattr(light, "shadow_soft_size", 0.0)),
+                spot_size=float(getattr(light, "spot_size", 0.785398)),
+                spot_blend=float(getattr(light, "spot_blend", 0.15)),
+                sun_angle=float(getattr(light, "angle", 0.00918)),
+                ies=ies,
+            )
+        )
+    return out
+
+
+# -- camera, meshes -------------------------------------------------------------
+
+
+def gather_camera(scene: bpy.types.Scene, resolution_scale: float = 1.0) -> CameraData | None:
+    """The active camera with the render resolution (× percentage × ``resolution_scale``) and pixel filter."""
+    cam = scene.camera
+    if cam is None or cam.type != "CAMERA":
+        return None
+    r = scene.render
+    f = r.resolution_percentage / 100.0 * resolution_scale
+    w, h = max(1, round(r.resolution_x * f)), max(1, round(r.resolution_y * f))
+    cycles = getattr(scene, "cycles", None)
+    data = cam.data
+    return CameraData(
+        name=cam.name,
+        matrix=_rows(cam.matrix_world),
+        lens_mm=float(data.lens),
+        sensor_width_mm=float(data.sensor_width),
+        sensor_height_mm=float(data.sensor_height),
+        sensor_fit=data.sensor_fit,
+        shift_x=float(data.shift_x),
+        shift_y=float(data.shift_y),
+        clip_start=float(data.clip_start),
+        clip_end=float(data.clip_end),
+        resolution=(w, h),
+        cam_type=data.type,
+        filter_type=getattr(cycles, "pixel_filter_type", "BLACKMAN_HARRIS") if cycles else "BLACKMAN_HARRIS",
+        filter_size_px=float(r.filter_size),
+    )
+
+
+def gather_meshes(scene: bpy.types.Scene, depsgraph: bpy.types.Depsgraph) -> list[MeshData]:
+    """Render-visible mesh objects, evaluated (modifiers applied), as occluders."""
+    out = []
+    for obj in scene.objects:
+        if obj.type != "MESH" or obj.hide_render:
+            continue
+        ev = obj.evaluated_get(depsgraph)
+        me = ev.to_mesh()
+        try:
+            me.calc_loop_triangles()
+            n_v, n_t = len(me.vertices), len(me.loop_triangles)
+            co = np.empty(n_v * 3, dtype=np.float64)
+            me.vertices.foreach_get("co", co)
+            tri = np.empty(n_t * 3, dtype=np.int64)
+            me.loop_triangles.foreach_get("vertices", tri)
+            out.append(
+                MeshData(
+                    name=obj.name,
+                    positions=[tuple(p) for p in co.reshape(-1, 3).tolist()],
+                    triangles=[tuple(t) for t in tri.reshape(-1, 3).tolist()],
+                    matrix=_rows(ev.matrix_world),
+                )
+            )
+        finally:
+            ev.to_mesh_clear()
+    return out
+
+
+def gather_scene(scene: bpy.types.Scene, depsgraph: bpy.types.Depsgraph) -> SceneData:
+    """Everything Tyndall needs from ``scene`` (raises :class:`SceneInputError`)."""
+    st = scene.tyndall
+    skipped = [
+        f"{o.name}: volume objects are not exported (only the world volume)"
+        for o in scene.objects
+        if o.type == "VOLUME" and not o.hide_render
+    ]
+    return SceneData(
+        camera=gather_camera(scene, st.resolution_scale),
+        lights=gather_lights(scene),
+        media=gather_world_medium(scene.world),
+        meshes=gather_meshes(scene, depsgraph),
+        unit_scale=float(scene.unit_settings.scale_length),
+        skipped=skipped,
+        tolerance=float(st.tolerance),
+        threads=int(st.threads),
+        include_sun=bool(st.include_sun),
+    )
+
+
+def sun_lamp(scene: bpy.types.Scene) -> bpy.types.Object | None:
+    """The Sky panel's chosen sun lamp, else the first render-visible Sun lamp."""
+    chosen = scene.tyndall.sky_sun_object
+    if chosen is not None and chosen.type == "LIGHT" and chosen.data.type == "SUN":
+        return chosen
+    for o in scene.objects:
+        if o.type == "LIGHT" and o.data.type == "SUN" and not o.hide_render:
+            return o
+    return None

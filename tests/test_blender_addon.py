@@ -1,0 +1,509 @@
+"""Tests of the Blender extension (blender_addon/) with real bpy 5.0.x, headless.
+
+Run with a Python that has bpy (and OpenEXR, and the current tyndall installed):
+
+    /tmp/bpyvenv/bin/python -m pytest tests/test_blender_addon.py
+
+Without bpy the whole module is skipped. Each bpy test starts from factory settings.
+"""
+
+from __future__ import annotations
+
+import glob
+import json
+import math
+import os
+import subprocess
+import sys
+import threading
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+bpy = pytest.importorskip("bpy")
+tyndall = pytest.importorskip("tyndall")
+
+REPO = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(REPO))
+
+import blender_addon  # noqa: E402
+from blender_addon.core import conversions as cv  # noqa: E402
+from blender_addon.core.files import Staging, atomic_write_json  # noqa: E402
+from blender_addon.core.jobs import Job, JobState, JobStateError  # noqa: E402
+from blender_addon.core.scene_build import SceneData, SceneInputError, build_scene  # noqa: E402
+
+IES_TEXT = """IESNA:LM-63-2002
+[TEST] tyndall symmetric test profile
+TILT=NONE
+1 -1 1.0 5 1 1 2 0 0 0
+1.0 1.0 100
+0 45 90 135 180
+0
+1000 800 400 100 0
+"""
+
+
+# --------------------------------------------------------------------------- fixtures
+
+
+@pytest.fixture
+def addon() -> Iterator[None]:
+    """Factory settings (empty) with the add-on registered."""
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    blender_addon.register()
+    try:
+        yield
+    finally:
+        blender_addon.unregister()
+
+
+def make_scene(density: float = 0.05, phase: str = "HENYEY_GREENSTEIN", anisotropy: float = 0.3) -> dict[str, Any]:
+    """Spot (named Spot.001) + occluder cube + world Volume Scatter + camera, 64 × 36 px."""
+    sc = bpy.context.scene
+    sc.render.resolution_x, sc.render.resolution_y, sc.render.resolution_percentage = 64, 36, 100
+    cam = bpy.data.objects.new("Cam", bpy.data.cameras.new("Cam"))
+    sc.collection.objects.link(cam)
+    sc.camera = cam
+    cam.location = (0.0, -10.0, 2.0)
+    cam.rotation_euler = (math.radians(85.0), 0.0, 0.0)
+    cam.data.lens = 35.0
+    spot = bpy.data.objects.new("Spot.001", bpy.data.lights.new("Spot", "SPOT"))
+    sc.collection.objects.link(spot)
+    spot.location = (0.0, 0.0, 5.0)
+    spot.data.energy = 1000.0
+    spot.data.color = (1.0, 0.8, 0.6)
+    spot.data.spot_size = math.radians(40.0)
+    spot.data.spot_blend = 0.25
+    spot.data.shadow_soft_size = 0.0
+    me = bpy.data.meshes.new("Cube")
+    v = [(x, y, z) for x in (-0.5, 0.5) for y in (-0.5, 0.5) for z in (0.5, 1.5)]
+    f = [(0, 1, 3, 2), (4, 6, 7, 5), (0, 4, 5, 1), (2, 3, 7, 6), (0, 2, 6, 4), (1, 5, 7, 3)]
+    me.from_pydata(v, [], f)
+    cube = bpy.data.objects.new("Cube", me)
+    sc.collection.objects.link(cube)
+    world = bpy.data.worlds.new("World")
+    sc.world = world
+    world.use_nodes = True
+    nt = world.node_tree
+    vs = nt.nodes.new("ShaderNodeVolumeScatter")
+    vs.phase = phase
+    vs.inputs["Density"].default_value = density
+    vs.inputs["Color"].default_value = (0.5, 0.6, 0.8, 1.0)
+    vs.inputs["Anisotropy"].default_value = anisotropy
+    out = next(n for n in nt.nodes if n.bl_idname == "ShaderNodeOutputWorld")
+    nt.links.new(vs.outputs[0], out.inputs["Volume"])
+    return {"camera": cam, "spot": spot, "cube": cube, "world": world, "scatter": vs}
+
+
+def exr_channels(path: str) -> dict[str, Any]:
+    OpenEXR = pytest.importorskip("OpenEXR")
+    with OpenEXR.File(path) as f:
+        return {k: v.pixels for k, v in f.channels().items()}
+
+
+def listing(folder: Path) -> list[str]:
+    """Every file under ``folder`` (hidden ones included), relative."""
+    if not folder.exists():
+        return []
+    return sorted(str(p.relative_to(folder)) for p in folder.rglob("*"))
+
+
+# --------------------------------------------------------------------------- pure helpers
+
+
+def test_light_and_spot_conversions() -> None:
+    assert cv.light_power_w(1000.0, 1.0) == 2000.0
+    assert cv.radiant_intensity_w_sr(4 * math.pi) == pytest.approx(1.0)
+    assert cv.spot_size_deg(math.radians(40.0)) == pytest.approx(40.0)
+    assert cv.spot_blend(0.25) == 0.25
+    assert cv.spot_mask(1.0, 40.0, 0.25) == 1.0 and cv.spot_mask(math.cos(math.radians(21)), 40.0, 0.25) == 0.0
+    with pytest.raises(cv.ConversionError, match="finite"):
+        cv.light_power_w(float("nan"))
+    with pytest.raises(cv.ConversionError, match="Blend"):
+        cv.spot_blend(1.5)
+
+
+def test_volume_conversions() -> None:
+    assert cv.volume_scatter_sigma_s(2.0, (0.06, 0.04, 0.02)) == pytest.approx((0.12, 0.08, 0.04))
+    assert cv.volume_absorption_sigma_a(2.0, (0.25, 1.0, 1.5)) == pytest.approx((1.5, 0.0, 0.0))
+    s, a = cv.principled_volume_coefficients(1.0, (0.5, 0.5, 0.5), (0.0, 0.0, 0.0))
+    assert s == pytest.approx((0.5,) * 3) and a == pytest.approx((0.5,) * 3)
+    s, a = cv.principled_volume_coefficients(1.0, (0.5, 0.5, 0.5), (1.0, 0.25, 0.0))
+    assert a == pytest.approx((0.0, 0.25, 0.5))
+
+
+def test_phase_mapping() -> None:
+    assert cv.phase_from_volume_scatter("HENYEY_GREENSTEIN", 0.5) == {"type": "henyey_greenstein", "g": 0.5}
+    assert cv.phase_from_volume_scatter("HENYEY_GREENSTEIN", 0.0) == {"type": "isotropic"}
+    assert cv.phase_from_volume_scatter("HENYEY_GREENSTEIN", 1.0)["g"] == 0.999
+    assert cv.phase_from_volume_scatter("RAYLEIGH") == {"type": "rayleigh"}
+    assert cv.phase_from_volume_scatter("DRAINE", 0.7, 1.0) == {"type": "cornette_shanks", "g": 0.7}
+    assert cv.phase_from_volume_scatter("DRAINE", 0.0, 1.0) == {"type": "rayleigh"}
+    for bad, msg in [("MIE", "Mie"), ("FOURNIER_FORAND", "Fournier"), ("DRAINE", "Alpha")]:
+        with pytest.raises(cv.ConversionError, match=msg):
+            cv.phase_from_volume_scatter(bad, 0.3, 0.5)
+
+
+def test_names_and_rotations() -> None:
+    assert cv.unique_names(["Spot.001", "Spot_001", "a b"]) == ["Spot_001", "Spot_001_2", "a_b"]
+    q = cv.quaternion_wxyz_from_rows([[2, 0, 0], [0, 0, -3], [0, 3, 0]])  # 90° about X, scaled
+    assert q == pytest.approx((math.sqrt(0.5), math.sqrt(0.5), 0.0, 0.0))
+    with pytest.raises(cv.ConversionError, match="mirror"):
+        cv.quaternion_wxyz_from_rows([[-1, 0, 0], [0, 1, 0], [0, 0, 1]])
+
+
+def test_sun_angles_match_tyndall_sky() -> None:
+    for elev, rot in [(30.0, 0.0), (10.0, 90.0), (45.0, -120.0)]:
+        _rgb, rep = tyndall.sky(elev, rot, width=16)
+        e, r = cv.sun_angles_from_direction(rep["sun_lamp"]["direction_to_sun"])
+        assert e == pytest.approx(elev, abs=1e-9)
+        assert math.remainder(r - rot, 360.0) == pytest.approx(0.0, abs=1e-9)
+
+
+def test_build_scene_errors() -> None:
+    with pytest.raises(SceneInputError, match="no active camera"):
+        build_scene(SceneData(camera=None, lights=[], media=[], meshes=[]))
+
+
+def test_job_state_machine_done_and_failed() -> None:
+    seen: list[float] = []
+
+    def work(progress: Any) -> int:
+        progress(0.5, "half")
+        seen.append(0.5)
+        return 42
+
+    job = Job(work, "t")
+    assert job.poll() is JobState.PENDING
+    assert job.run() is JobState.DONE and job.result() == 42 and job.progress == 1.0
+    with pytest.raises(JobStateError):
+        job.start()
+
+    discarded: list[Any] = []
+
+    def boom(_p: Any) -> None:
+        raise RuntimeError("render failed")
+
+    bad = Job(boom, "b", on_discard=discarded.append)
+    bad.start()
+    assert bad.wait(5)
+    assert bad.poll() is JobState.FAILED and "render failed" in str(bad.error) and discarded == [None]
+    with pytest.raises(JobStateError):
+        bad.result()
+
+
+def test_job_cancel_discards_the_late_result() -> None:
+    gate, started = threading.Event(), threading.Event()
+    discarded: list[Any] = []
+
+    def work(progress: Any) -> str:
+        started.set()
+        progress(0.2, "rendering")
+        gate.wait(5)
+        return "late result"
+
+    job = Job(work, "c", on_discard=discarded.append)
+    job.start()
+    assert started.wait(5)
+    assert job.poll() is JobState.RUNNING and job.message == "rendering"
+    assert job.cancel()  # the operator stops waiting here
+    assert job.poll() is JobState.CANCELLED
+    assert not job.cancel()
+    gate.set()  # the "render" returns later…
+    assert job.wait(5)
+    assert job.poll() is JobState.CANCELLED and discarded == ["late result"]  # …and is thrown away
+    with pytest.raises(JobStateError):
+        job.result()
+
+
+def test_staging_is_all_or_nothing(tmp_path: Path) -> None:
+    out = tmp_path / "out"
+    st = Staging(str(out))
+    atomic_write_json(st.file("a.json"), {"x": 1})
+    atomic_write_json(st.file("sub/b.json"), {"y": 2})
+    assert listing(out) == [
+        os.path.basename(st.path),
+        *(f"{os.path.basename(st.path)}/{p}" for p in ["a.json", "sub", "sub/b.json"]),
+    ]
+    st.commit()
+    assert listing(out) == ["a.json", "sub", "sub/b.json"]
+    st2 = Staging(str(out))
+    atomic_write_json(st2.file("c.json"), {})
+    st2.discard()
+    assert listing(out) == ["a.json", "sub", "sub/b.json"]
+
+
+# --------------------------------------------------------------------------- bpy
+
+
+def test_addon_registers(addon: None) -> None:
+    for op in ("compute_volumetrics", "generate_sky", "export_stage", "import_results"):
+        assert hasattr(bpy.ops.tyndall, op)
+        assert "directory" in getattr(bpy.ops.tyndall, op).get_rna_type().properties
+    assert hasattr(bpy.context.scene, "tyndall")
+    assert bpy.types.VIEW3D_PT_tyndall_volumetrics.bl_category == "Tyndall"
+    assert bpy.types.VIEW3D_PT_tyndall_sky.bl_region_type == "UI"
+
+
+def test_export_compute_import(addon: None, tmp_path: Path) -> None:
+    objs = make_scene()
+    sc = bpy.context.scene
+    sc.render.engine = "CYCLES"  # light-group passes exist on the Render Layers node with Cycles
+    out = tmp_path / "shot"
+
+    assert bpy.ops.tyndall.export_stage("EXEC_DEFAULT", directory=str(out)) == {"FINISHED"}
+    scene = json.loads((out / "scene.json").read_text())
+    spot = scene["lights"][0]
+    assert spot["type"] == "spot" and spot["name"] == "Spot_001"
+    assert spot["spot_size_deg"] == pytest.approx(40.0) and spot["spot_blend"] == pytest.approx(0.25)
+    assert spot["power_w"] == pytest.approx(1000.0) and spot["color"] == pytest.approx([1.0, 0.8, 0.6])
+    assert spot["position"] == pytest.approx([0, 0, 5])
+    med = scene["media"][0]
+    assert med["scattering"] == pytest.approx([0.025, 0.03, 0.04]) and med["absorption"] == [0.0, 0.0, 0.0]
+    assert med["phase"] == pytest.approx({"type": "henyey_greenstein", "g": 0.3})
+    assert scene["camera"]["resolution"] == [64, 36] and scene["camera"]["focal_length_mm"] == pytest.approx(35)
+    assert scene["output"]["pixel_filter"] == {"type": "blackman_harris", "width_px": 1.5}
+    assert len(scene["meshes"]) == 1 and len(scene["meshes"][0]["triangles"]) == 12
+    usda = (out / "stage.usda").read_text()
+    assert "tyndall:medium:type" in usda and "tyndall:output:resolution = (64, 36)" in usda
+    assert "TyndallMedium" not in bpy.data.objects and "tyndall:output:layers" not in objs["camera"]
+
+    assert bpy.ops.tyndall.compute_volumetrics("EXEC_DEFAULT", directory=str(out)) == {"FINISHED"}
+    assert listing(out) == ["report.json", "scene.json", "stage.usda", "volumetrics.exr"]
+    ch = exr_channels(str(out / "volumetrics.exr"))
+    for layer in ("inscatter", "transmittance", "error", "inscatter.Spot_001"):
+        assert ch[layer].shape == (36, 64, 3), layer
+    assert ch["depth.Z"].shape == (36, 64)
+    assert ch["inscatter"].max() > 0 and 0 < ch["transmittance"].min() <= ch["transmittance"].max() <= 1
+    assert abs(ch["inscatter"] - ch["inscatter.Spot_001"]).max() <= 1e-6 * ch["inscatter"].max()
+    assert (ch["depth.Z"] < 1e9).sum() > 0  # the cube is seen
+    report = json.loads((out / "report.json").read_text())
+    assert report["resolution"] == [64, 36]
+    assert report["blender"]["light_layers"] == {"Spot.001": "inscatter.Spot_001"}
+
+    # applied: light group + compositor node group
+    assert objs["spot"].lightgroup == "tyndall_Spot_001"
+    assert sc.view_layers[0].lightgroups.get("tyndall_Spot_001") is not None
+    tree = sc.compositing_node_group
+    assert tree is not None and tree.name == "Tyndall Composite"
+    kinds = sorted(n.bl_idname for n in tree.nodes)
+    assert kinds.count("CompositorNodeImage") == 2 and "CompositorNodeRLayers" in kinds
+    outs = [s.name for s in tree.interface.items_tree if s.item_type == "SOCKET" and s.in_out == "OUTPUT"]
+    assert outs == ["Image", "Spot.001"]
+    out_node = next(n for n in tree.nodes if n.bl_idname == "NodeGroupOutput")
+    add = out_node.inputs["Image"].links[0].from_node
+    assert add.blend_type == "ADD"
+    srcs = {lk.from_socket.name for s in add.inputs if s.enabled for lk in s.links}
+    assert "inscatter" in srcs
+    mul = next(
+        lk.from_node for s in add.inputs if s.enabled for lk in s.links if lk.from_node.bl_idname == "ShaderNodeMix"
+    )
+    assert mul.blend_type == "MULTIPLY"
+    assert {lk.from_socket.name for s in mul.inputs if s.enabled for lk in s.links} == {"Image", "transmittance"}
+    img = next(n for n in tree.nodes if n.bl_idname == "CompositorNodeImage").image
+    assert os.path.samefile(bpy.path.abspath(img.filepath), out / "volumetrics.exr")
+
+    # import_results on a fresh scene rebuilds the same
+    sc.compositing_node_group = None
+    assert bpy.ops.tyndall.import_results("EXEC_DEFAULT", directory=str(out)) == {"FINISHED"}
+    assert sc.compositing_node_group.name == "Tyndall Composite"
+
+
+def test_generate_sky_sets_world_and_sun(addon: None, tmp_path: Path) -> None:
+    make_scene()
+    sc = bpy.context.scene
+    sun = bpy.data.objects.new("Sun", bpy.data.lights.new("Sun", "SUN"))
+    sc.collection.objects.link(sun)
+    sun.rotation_euler = (math.radians(50.0), 0.0, math.radians(30.0))  # elevation 40°
+    sc.tyndall.sky_width = 64
+    out = tmp_path / "sky"
+    assert bpy.ops.tyndall.generate_sky("EXEC_DEFAULT", directory=str(out)) == {"FINISHED"}
+    assert listing(out) == ["sky.exr", "sky.report.json"]
+    rep = json.loads((out / "sky.report.json").read_text())
+    lamp = rep["sun_lamp"]
+    assert lamp["elevation_deg"] == pytest.approx(40.0, abs=1e-4)
+    assert sun.data.energy == pytest.approx(lamp["strength_w_m2"], rel=1e-6)
+    assert tuple(sun.data.color) == pytest.approx(tuple(lamp["color"]), rel=1e-6)
+    z = [sun.matrix_world[r][2] for r in range(3)]
+    assert z == pytest.approx(lamp["direction_to_sun"], abs=1e-6)
+    tree = sc.world.node_tree
+    env = tree.nodes["Tyndall Sky"]
+    assert env.projection == "EQUIRECTANGULAR" and env.image.size[:] == (64, 32)
+    out_node = next(n for n in tree.nodes if n.bl_idname == "ShaderNodeOutputWorld")
+    assert out_node.inputs["Surface"].links[0].from_node.name == "Tyndall Background"
+    assert out_node.inputs["Volume"].is_linked  # the fog stays
+    ch = exr_channels(str(out / "sky.exr"))
+    assert sorted(ch) == ["B", "G", "R"] or "RGB" in ch or len(ch) >= 1
+
+
+def test_ies_internal_text_and_file(addon: None, tmp_path: Path) -> None:
+    objs = make_scene()
+    light = objs["spot"].data
+    light.use_nodes = True
+    tree = light.node_tree
+    em = next(n for n in tree.nodes if n.bl_idname == "ShaderNodeEmission")
+    ies = tree.nodes.new("ShaderNodeTexIES")
+    ies.mode = "INTERNAL"
+    text = bpy.data.texts.new("profile.ies")
+    text.write(IES_TEXT)
+    ies.ies = text
+    ies.inputs["Strength"].default_value = 2.0
+    tree.links.new(ies.outputs[0], em.inputs["Strength"])
+    out = tmp_path / "ies"
+    assert bpy.ops.tyndall.compute_volumetrics("EXEC_DEFAULT", directory=str(out)) == {"FINISHED"}
+    scene = json.loads((out / "scene.json").read_text())
+    assert scene["lights"][0]["ies"] == {"file": "ies/Spot_001.ies", "strength": 2.0}
+    assert (out / "ies" / "Spot_001.ies").read_text() == IES_TEXT
+    assert tyndall.load_scene(str(out / "scene.json")).resolution == (64, 36)  # relative path resolves
+
+    path = tmp_path / "ext.ies"
+    path.write_text(IES_TEXT)
+    ies.mode = "EXTERNAL"
+    ies.filepath = str(path)
+    out2 = tmp_path / "ies2"
+    assert bpy.ops.tyndall.export_stage("EXEC_DEFAULT", directory=str(out2)) == {"FINISHED"}
+    assert json.loads((out2 / "scene.json").read_text())["lights"][0]["ies"]["file"] == str(path)
+
+
+def _break_missing_ies(objs: dict[str, Any], tmp: Path) -> None:
+    light = objs["spot"].data
+    light.use_nodes = True
+    tree = light.node_tree
+    em = next(n for n in tree.nodes if n.bl_idname == "ShaderNodeEmission")
+    ies = tree.nodes.new("ShaderNodeTexIES")
+    ies.mode = "EXTERNAL"
+    ies.filepath = str(tmp / "nope" / "missing.ies")
+    tree.links.new(ies.outputs[0], em.inputs["Strength"])
+
+
+def _break_nan(objs: dict[str, Any], _tmp: Path) -> None:
+    objs["spot"].data.energy = float("nan")
+
+
+def _break_no_lights(objs: dict[str, Any], _tmp: Path) -> None:
+    bpy.data.objects.remove(objs["spot"])
+
+
+def _break_no_medium(objs: dict[str, Any], _tmp: Path) -> None:
+    tree = objs["world"].node_tree
+    for lk in list(tree.links):
+        tree.links.remove(lk)
+
+
+def _break_no_camera(objs: dict[str, Any], _tmp: Path) -> None:
+    bpy.data.objects.remove(objs["camera"])
+
+
+def _break_mie(objs: dict[str, Any], _tmp: Path) -> None:
+    objs["scatter"].phase = "MIE"
+
+
+def _break_texture(objs: dict[str, Any], _tmp: Path) -> None:
+    tree = objs["world"].node_tree
+    noise = tree.nodes.new("ShaderNodeTexNoise")
+    tree.links.new(noise.outputs["Fac"], objs["scatter"].inputs["Density"])
+
+
+BAD_INPUTS = {
+    "missing_ies": (_break_missing_ies, "file not found"),
+    "nan_power": (_break_nan, "Power is not a finite number"),
+    "no_lights": (_break_no_lights, "no lights"),
+    "no_medium": (_break_no_medium, "no participating medium"),
+    "no_camera": (_break_no_camera, "no active camera"),
+    "mie_phase": (_break_mie, "Mie phase function is not supported"),
+    "textured_density": (_break_texture, "is linked"),
+}
+
+
+@pytest.mark.parametrize("op", ["compute_volumetrics", "export_stage"])
+@pytest.mark.parametrize("case", sorted(BAD_INPUTS))
+def test_bad_input_reports_and_writes_nothing(addon: None, tmp_path: Path, case: str, op: str) -> None:
+    objs = make_scene()
+    breaker, message = BAD_INPUTS[case]
+    breaker(objs, tmp_path)
+    out = tmp_path / "out"
+    with pytest.raises(RuntimeError, match=message):  # EXEC_DEFAULT turns the ERROR report into RuntimeError
+        getattr(bpy.ops.tyndall, op)("EXEC_DEFAULT", directory=str(out))
+    assert not out.exists()
+
+
+def test_sky_without_sun_lamp_is_an_error(addon: None, tmp_path: Path) -> None:
+    make_scene()
+    with pytest.raises(RuntimeError, match="no sun lamp"):
+        bpy.ops.tyndall.generate_sky("EXEC_DEFAULT", directory=str(tmp_path / "s"))
+    assert not (tmp_path / "s").exists()
+    bpy.context.scene.tyndall.sky_use_sun_lamp = False
+    bpy.context.scene.tyndall.sky_width = 32
+    assert bpy.ops.tyndall.generate_sky("EXEC_DEFAULT", directory=str(tmp_path / "s")) == {"FINISHED"}
+    assert bpy.context.scene.objects.get("Tyndall Sun") is not None
+
+
+def test_import_results_empty_folder(addon: None, tmp_path: Path) -> None:
+    with pytest.raises(RuntimeError, match="no volumetrics.exr or sky.exr"):
+        bpy.ops.tyndall.import_results("EXEC_DEFAULT", directory=str(tmp_path))
+
+
+def test_render_failure_discards_staging(addon: None, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A failing render (after validation) leaves the output folder as it was."""
+    make_scene()
+
+    def fail(*_a: Any, **_k: Any) -> None:
+        raise tyndall.RenderFailed("simulated")
+
+    monkeypatch.setattr(tyndall, "render_to_files", fail)
+    out = tmp_path / "o"
+    with pytest.raises(RuntimeError, match="simulated"):
+        bpy.ops.tyndall.compute_volumetrics("EXEC_DEFAULT", directory=str(out))
+    assert listing(out) == []
+
+
+# --------------------------------------------------------------------------- the built extension
+
+INSTALL_SCRIPT = r"""
+import os, sys, json, math, shutil
+import bpy
+bpy.ops.wm.read_factory_settings(use_empty=True)
+res = bpy.ops.extensions.package_install_files(filepath=sys.argv[1], repo="user_default", enable_on_install=True)
+assert res == {"FINISHED"}, res
+assert "bl_ext.user_default.tyndall" in bpy.context.preferences.addons.keys()
+# Use the wheel the extension bundled, not a tyndall installed next to bpy.
+local = [p for p in sys.path if os.sep + "extensions" + os.sep + ".local" in p]
+assert local, sys.path
+sys.path.remove(local[0]); sys.path.insert(0, local[0])
+sys.modules.pop("tyndall", None)
+sc = bpy.context.scene
+sc.render.resolution_x, sc.render.resolution_y = 32, 18
+cam = bpy.data.objects.new("Cam", bpy.data.cameras.new("Cam")); sc.collection.objects.link(cam); sc.camera = cam
+cam.location = (0, -10, 2); cam.rotation_euler = (math.radians(85), 0, 0)
+spot = bpy.data.objects.new("Spot", bpy.data.lights.new("Spot", "SPOT")); sc.collection.objects.link(spot)
+spot.location = (0, 0, 5)
+w = bpy.data.worlds.new("W"); sc.world = w; w.use_nodes = True
+vs = w.node_tree.nodes.new("ShaderNodeVolumeScatter")
+w.node_tree.links.new(vs.outputs[0], w.node_tree.nodes["World Output"].inputs["Volume"])
+out = sys.argv[2]
+assert bpy.ops.tyndall.compute_volumetrics("EXEC_DEFAULT", directory=out) == {"FINISHED"}
+import tyndall
+print(json.dumps({"files": sorted(os.listdir(out)), "tyndall": tyndall.__file__, "local": local[0]}))
+"""
+
+
+def test_built_extension_installs_and_runs(tmp_path: Path) -> None:
+    zips = sorted(glob.glob(str(REPO / "dist" / "tyndall-*.zip")))
+    if not zips:
+        pytest.skip("no dist/tyndall-*.zip: run scripts/build_extension.py first")
+    script = tmp_path / "install.py"
+    script.write_text(INSTALL_SCRIPT)
+    env = dict(os.environ, HOME=str(tmp_path / "home"), BLENDER_USER_RESOURCES=str(tmp_path / "res"))
+    r = subprocess.run(
+        [sys.executable, str(script), zips[-1], str(tmp_path / "out")],
+        capture_output=True,
+        text=True,
+        timeout=600,
+        env=env,
+    )
+    assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
+    info = json.loads(r.stdout.strip().splitlines()[-1])
+    assert info["files"] == ["report.json", "scene.json", "volumetrics.exr"]
+    assert info["tyndall"].startswith(info["local"])  # the bundled wheel did the work
