@@ -35,5 +35,19 @@ echo "== cargo test"
 cargo test --workspace --quiet
 echo "== ruff"
 .venv/bin/ruff check python tests usd blender_addon scripts
+echo "== headless Blender: .venv-bpy with bpy 5.0.1 from PyPI (needs numpy<2), the tyndall wheel, the extension zip"
+if [ ! -x .venv-bpy/bin/python ]; then
+  "$PY" -m venv .venv-bpy
+fi
+BPY=.venv-bpy/bin/python
+"$BPY" -m pip install --quiet --upgrade pip
+"$BPY" -m pip install --quiet "bpy==5.0.1" "numpy<2" "pytest>=8" "OpenEXR>=3.3"
+rm -rf dist/wheels
+"$VPY" -m pip wheel --quiet --no-deps . -w dist/wheels
+"$BPY" -m pip install --quiet --force-reinstall --no-deps dist/wheels/tyndall-*.whl
+"$BPY" scripts/build_extension.py --wheel dist/wheels/tyndall-*.whl
+export TYNDALL_BPY_PYTHON="$PWD/$BPY"
 echo "== pytest"
 .venv/bin/python -m pytest -q ${PYTEST_ARGS:-}
+echo "== pytest with bpy (Blender extension)"
+"$BPY" -m pytest -q tests/test_blender_addon.py ${PYTEST_ARGS:-}
