@@ -80,6 +80,8 @@ tagged_enum_deserialize!(Medium, "medium", {
     "homogeneous" => Homogeneous(HomogeneousMedium),
     "height_fog" => HeightFog(HeightFogMedium),
     "fog_layer" => FogLayer(FogLayerMedium),
+    "layered_height_field" => LayeredHeightField(LayeredHeightFieldMedium),
+    "ellipsoid" => Ellipsoid(EllipsoidMedium),
 });
 
 /// The scene format version this build reads and writes.
@@ -678,7 +680,8 @@ pub enum SunPath {
     FullLayer,
 }
 
-/// A medium. JSON: `{"type": "homogeneous" | "height_fog" | "fog_layer", ...}`.
+/// A medium. JSON: `{"type": "homogeneous" | "height_fog" | "fog_layer" |
+/// "layered_height_field" | "ellipsoid", ...}`.
 #[derive(Debug, Clone, PartialEq, Serialize, JsonSchema)]
 #[serde(tag = "type", rename_all = "snake_case")]
 pub enum Medium {
@@ -690,6 +693,89 @@ pub enum Medium {
 
     /// Klassen's sunlit fog layer (flat earth): uniform fog between two heights.
     FogLayer(FogLayerMedium),
+
+    /// Nishita's dense lower layer (dry ice) under a boundary made of sine waves.
+    LayeredHeightField(LayeredHeightFieldMedium),
+
+    /// Nishita's smoke: constant coefficients inside an ellipsoid.
+    Ellipsoid(EllipsoidMedium),
+}
+
+/// One sine wave of a height field:
+/// `A·sin(2π (x cos θ + y sin θ)/λ + φ)`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields)]
+pub struct HeightWave {
+    /// Amplitude A, m, 0..=1e4. Required.
+    pub amplitude_m: f64,
+    /// Wavelength λ, m, 1e-3..=1e7. Required.
+    pub wavelength_m: f64,
+    /// Direction θ of the wave vector in the XY plane, degrees from +X towards
+    /// +Y, -360..=360. Default 0.
+    #[serde(default)]
+    pub direction_deg: f64,
+    /// Phase φ, degrees, -360..=360. Default 0.
+    #[serde(default)]
+    pub phase_deg: f64,
+}
+
+/// Coefficients on one side of a height-field boundary.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields)]
+pub struct LayerSide {
+    /// Scattering coefficient σ_s, m⁻¹, ≥ 0. Required.
+    pub scattering: Coefficient,
+    /// Absorption coefficient σ_a, m⁻¹, ≥ 0. Default 0.
+    #[serde(default)]
+    pub absorption: Coefficient,
+    /// Phase function. Default isotropic.
+    #[serde(default)]
+    pub phase: PhaseFunction,
+}
+
+/// Nishita et al. 1987 §4: a dense lower layer (dry ice) whose upper boundary
+/// is `z = base + Σ_k A_k sin(2π (x cos θ_k + y sin θ_k)/λ_k + φ_k)`; the
+/// `lower` coefficients apply below it, `upper` above.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields)]
+pub struct LayeredHeightFieldMedium {
+    /// Name for reports. Default "".
+    #[serde(default)]
+    pub name: String,
+    /// Mean height of the boundary, m, -1e7..=1e7. Required.
+    pub base_height_m: f64,
+    /// The sine waves, 1..=8. Required.
+    pub waves: Vec<HeightWave>,
+    /// Below the boundary (the dense layer). Required.
+    pub lower: LayerSide,
+    /// Above the boundary. Default none (vacuum).
+    #[serde(default)]
+    pub upper: Option<LayerSide>,
+}
+
+/// Nishita et al. 1987 §4: smoke of constant density inside an ellipsoid.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields)]
+pub struct EllipsoidMedium {
+    /// Name for reports. Default "".
+    #[serde(default)]
+    pub name: String,
+    /// Centre, m, each component finite. Required.
+    pub center: [f64; 3],
+    /// Semi-axes along the local X, Y, Z axes, m, each 1e-6..=1e7. Required.
+    pub radii: [f64; 3],
+    /// Rotation local → world as a quaternion `[w, x, y, z]`, non-zero
+    /// (normalised on load). Default none (axes along world X, Y, Z).
+    #[serde(default)]
+    pub rotation_wxyz: Option<[f64; 4]>,
+    /// Scattering coefficient σ_s, m⁻¹, ≥ 0. Required.
+    pub scattering: Coefficient,
+    /// Absorption coefficient σ_a, m⁻¹, ≥ 0. Default 0.
+    #[serde(default)]
+    pub absorption: Coefficient,
+    /// Phase function. Default isotropic.
+    #[serde(default)]
+    pub phase: PhaseFunction,
 }
 
 /// Constant coefficients, in the world or in a box.
@@ -1072,6 +1158,11 @@ impl Validator {
             self.fail(&format!("{field}.g"), m);
         }
     }
+    fn layer_side(&mut self, field: &str, s: &LayerSide) {
+        self.coefficient(&format!("{field}.scattering"), &s.scattering);
+        self.coefficient(&format!("{field}.absorption"), &s.absorption);
+        self.phase(&format!("{field}.phase"), &s.phase);
+    }
     fn ies(&mut self, field: &str, r: Option<&IesProfileRef>) {
         if let Some(r) = r {
             if r.file.trim().is_empty() {
@@ -1397,6 +1488,48 @@ impl Validator {
                     self.phase("phase", phase);
                     self.range("min_sun_elevation_deg", *min_sun_elevation_deg, 0.0, 90.0, "degrees");
                 }
+                Medium::LayeredHeightField(LayeredHeightFieldMedium {
+                    base_height_m,
+                    waves,
+                    lower,
+                    upper,
+                    ..
+                }) => {
+                    self.range("base_height_m", *base_height_m, -1e7, 1e7, "m");
+                    if waves.is_empty() || waves.len() > 8 {
+                        self.fail("waves", format!("needs 1..=8 sine waves, got {}", waves.len()));
+                    }
+                    for (k, w) in waves.iter().enumerate() {
+                        self.range(&format!("waves[{k}].amplitude_m"), w.amplitude_m, 0.0, 1e4, "m");
+                        self.range(&format!("waves[{k}].wavelength_m"), w.wavelength_m, 1e-3, 1e7, "m");
+                        self.range(&format!("waves[{k}].direction_deg"), w.direction_deg, -360.0, 360.0, "degrees");
+                        self.range(&format!("waves[{k}].phase_deg"), w.phase_deg, -360.0, 360.0, "degrees");
+                    }
+                    self.layer_side("lower", lower);
+                    if let Some(u) = upper {
+                        self.layer_side("upper", u);
+                    }
+                }
+                Medium::Ellipsoid(EllipsoidMedium {
+                    center,
+                    radii,
+                    rotation_wxyz,
+                    scattering,
+                    absorption,
+                    phase,
+                    ..
+                }) => {
+                    self.vec3("center", *center);
+                    for (k, r) in radii.iter().enumerate() {
+                        self.range(&format!("radii[{k}]"), *r, 1e-6, 1e7, "m");
+                    }
+                    if let Some(q) = rotation_wxyz {
+                        self.quaternion("rotation_wxyz", *q);
+                    }
+                    self.coefficient("scattering", scattering);
+                    self.coefficient("absorption", absorption);
+                    self.phase("phase", phase);
+                }
             }
             self.pop();
         }
@@ -1610,6 +1743,7 @@ mod tests {
         for (name, text) in [
             ("valley_height_fog", include_str!("../../examples/valley_height_fog.json")),
             ("fog_layer_sunrise", include_str!("../../examples/fog_layer_sunrise.json")),
+            ("dry_ice_stage", include_str!("../../examples/dry_ice_stage.json")),
         ] {
             Scene::from_json_str(text, name).unwrap_or_else(|e| panic!("{e}"));
         }

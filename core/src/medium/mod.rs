@@ -7,10 +7,18 @@
 //! pointwise [`PreparedMedium::extinction_and_source`] and the closed-form
 //! optical depths, with an error estimate (see `render`).
 //!
+//! Two media of Nishita et al. 1987 §4 have no closed form for the sun's
+//! in-scatter (the sun path crosses a curved boundary): the wavy dry-ice
+//! layer ([`height_field_layer`]) and the smoke ellipsoid ([`ellipsoid`]).
+//! Their optical depths are exact; their `closed_form` integrates the sun
+//! term by adaptive Gauss–Kronrod and returns its error estimate.
+//!
 //! All quantities are per channel: `C = 3` (linear Rec.709) or
 //! `C = SPECTRAL_SAMPLES` (380–780 nm at 5 nm); the caller chooses.
 
+pub mod ellipsoid;
 pub mod fog_layer;
+pub mod height_field_layer;
 pub mod height_fog;
 pub mod homogeneous;
 pub mod phase;
@@ -111,6 +119,10 @@ pub enum PreparedMedium<const C: usize> {
     HeightFog(height_fog::HeightFog<C>),
     /// Klassen's fog layer.
     FogLayer(fog_layer::FogLayer<C>),
+    /// Nishita's dense layer under a sine-wave height field (dry ice).
+    HeightFieldLayer(height_field_layer::HeightFieldLayer<C>),
+    /// Nishita's constant-density smoke ellipsoid.
+    Ellipsoid(ellipsoid::Ellipsoid<C>),
 }
 
 impl<const C: usize> PreparedMedium<C> {
@@ -120,6 +132,8 @@ impl<const C: usize> PreparedMedium<C> {
             PreparedMedium::Homogeneous(m) => m.segment(ray),
             PreparedMedium::HeightFog(_) => Some((0.0, ray.s_max)),
             PreparedMedium::FogLayer(m) => m.segment(ray),
+            PreparedMedium::HeightFieldLayer(m) => m.segment(ray),
+            PreparedMedium::Ellipsoid(m) => m.segment(ray),
         }
     }
 
@@ -129,6 +143,8 @@ impl<const C: usize> PreparedMedium<C> {
             PreparedMedium::Homogeneous(m) => m.closed_form(ray, lights),
             PreparedMedium::HeightFog(m) => m.closed_form(ray, lights),
             PreparedMedium::FogLayer(m) => m.closed_form(ray, lights),
+            PreparedMedium::HeightFieldLayer(m) => m.closed_form(ray, lights),
+            PreparedMedium::Ellipsoid(m) => m.closed_form(ray, lights),
         }
     }
 
@@ -138,6 +154,8 @@ impl<const C: usize> PreparedMedium<C> {
             PreparedMedium::Homogeneous(m) => m.optical_depth(ray, s),
             PreparedMedium::HeightFog(m) => m.optical_depth(ray, s),
             PreparedMedium::FogLayer(m) => m.optical_depth(ray, s),
+            PreparedMedium::HeightFieldLayer(m) => m.optical_depth(ray, s),
+            PreparedMedium::Ellipsoid(m) => m.optical_depth(ray, s),
         }
     }
 
@@ -147,6 +165,8 @@ impl<const C: usize> PreparedMedium<C> {
             PreparedMedium::Homogeneous(m) => m.source(ray, s, lights),
             PreparedMedium::HeightFog(m) => m.source(ray, s, lights),
             PreparedMedium::FogLayer(m) => m.source(ray, s, lights),
+            PreparedMedium::HeightFieldLayer(m) => m.source(ray, s, lights),
+            PreparedMedium::Ellipsoid(m) => m.source(ray, s, lights),
         }
     }
 
@@ -181,11 +201,19 @@ impl<const C: usize> PreparedMedium<C> {
                 let ph = m.phase.eval(mu);
                 m.scattering.map(|s| s * ph)
             }
+            PreparedMedium::HeightFieldLayer(m) => m.scattering_phase_at(p, mu),
+            PreparedMedium::Ellipsoid(m) => m.scattering_phase_at(p, mu),
         }
     }
 
     /// Optical depth of the straight segment from `a` to `b`, per channel.
     pub fn optical_depth_between(&self, a: DVec3, b: DVec3) -> [f64; C] {
+        match self {
+            // Not through `optical_depth`: that caches the crossings of view rays.
+            PreparedMedium::HeightFieldLayer(m) => return m.optical_depth_between(a, b),
+            PreparedMedium::Ellipsoid(m) => return m.optical_depth_between(a, b),
+            _ => {}
+        }
         let v = b - a;
         let len = v.length();
         if len.is_nan() || len <= 0.0 {
@@ -205,6 +233,8 @@ impl<const C: usize> PreparedMedium<C> {
             PreparedMedium::Homogeneous(m) => m.sun_transmittance_at(p, to_sun),
             PreparedMedium::HeightFog(_) => [1.0; C],
             PreparedMedium::FogLayer(m) => m.sun_transmittance_at(p, to_sun),
+            PreparedMedium::HeightFieldLayer(m) => m.sun_transmittance_at(p, to_sun),
+            PreparedMedium::Ellipsoid(m) => m.sun_transmittance_at(p, to_sun),
         }
     }
 
@@ -224,6 +254,8 @@ impl<const C: usize> PreparedMedium<C> {
             PreparedMedium::Homogeneous(m) => &m.name,
             PreparedMedium::HeightFog(m) => &m.name,
             PreparedMedium::FogLayer(m) => &m.name,
+            PreparedMedium::HeightFieldLayer(m) => &m.name,
+            PreparedMedium::Ellipsoid(m) => &m.name,
         }
     }
 }
