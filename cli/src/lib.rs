@@ -67,7 +67,7 @@ enum Command {
         #[arg(long)]
         quiet: bool,
     },
-    /// Render the shipped examples (foggy valley, fog layer, a stage with four spots) and a sky into a directory: EXR, PNG previews, reports.
+    /// Render the shipped examples (foggy valley, fog layer, a stage with four spots, dry ice) and a sky into a directory: EXR, PNG previews, reports.
     Demo {
         /// Output directory.
         #[arg(long, default_value = "tyndall-demo")]
@@ -214,10 +214,11 @@ pub enum SkyModelName {
 }
 
 /// Shipped example scenes: (file stem, JSON).
-pub const EXAMPLES: [(&str, &str); 3] = [
+pub const EXAMPLES: [(&str, &str); 4] = [
     ("valley_height_fog", include_str!("../../examples/valley_height_fog.json")),
     ("fog_layer_sunrise", include_str!("../../examples/fog_layer_sunrise.json")),
     ("stage_four_spots", include_str!("../../examples/stage_four_spots.json")),
+    ("dry_ice_stage", include_str!("../../examples/dry_ice_stage.json")),
 ];
 
 /// Runs the command line; returns the process exit code (0 ok, 1 error, 2 usage).

@@ -206,6 +206,30 @@ impl<const C: usize> PreparedMedium<C> {
         }
     }
 
+    /// Appends the parameters in `(0, s_max)` where the medium's density jumps
+    /// along `ray` (box faces, ellipsoid surface, the height-field boundary,
+    /// fog-layer planes), so that quadratures can split there.
+    pub fn breakpoints(&self, ray: &ViewRay, out: &mut Vec<f64>) {
+        match self {
+            PreparedMedium::HeightFog(_) => {}
+            PreparedMedium::HeightFieldLayer(m) => {
+                let pieces = m.pieces(ray.origin, ray.dir, 0.0, ray.s_max);
+                for p in pieces.iter().skip(1) {
+                    out.push(p.t0);
+                }
+            }
+            _ => {
+                if let Some((a, b)) = self.segment(ray) {
+                    for t in [a, b] {
+                        if t > 0.0 && t < ray.s_max {
+                            out.push(t);
+                        }
+                    }
+                }
+            }
+        }
+    }
+
     /// Optical depth of the straight segment from `a` to `b`, per channel.
     pub fn optical_depth_between(&self, a: DVec3, b: DVec3) -> [f64; C] {
         match self {

@@ -333,8 +333,12 @@ impl<const C: usize> StageLights<C> {
         if h_true < l.min_distance && scratch.lit.iter().any(|(a, b)| *a <= tc && tc <= *b) {
             out.clamped = true;
         }
-        // Kinks of the intensity (cone edge, blend start) split the segments.
+        // Kinks of the intensity (cone edge, blend start) and jumps of the
+        // media's density split the segments.
         scratch.cuts.clear();
+        for m in media {
+            m.breakpoints(ray, &mut scratch.cuts);
+        }
         for k in l.kinks() {
             ray_cone_intervals(o, d, 0.0, ray.s_max, l.position, l.frame.axis, k, &mut scratch.kink);
             for &(a, b) in &scratch.kink {
@@ -538,7 +542,22 @@ impl<const C: usize> StageLights<C> {
             }
             val
         };
+        scratch.cuts.clear();
+        for m in media {
+            m.breakpoints(ray, &mut scratch.cuts);
+        }
+        let mut pieces: Vec<(f64, f64)> = Vec::with_capacity(scratch.lit.len());
         for &(a, b) in &scratch.lit {
+            let mut start = a;
+            let mut inner: Vec<f64> = scratch.cuts.iter().copied().filter(|c| *c > a && *c < b).collect();
+            inner.sort_by(f64::total_cmp);
+            for c in inner {
+                pieces.push((start, c));
+                start = c;
+            }
+            pieces.push((start, b));
+        }
+        for &(a, b) in &pieces {
             let r = if b.is_finite() {
                 integrate_adaptive(point, a, b, 1e-300, tolerance, 200)
             } else {
