@@ -682,3 +682,110 @@ fn murky_lobe_coincident_faces_and_light_inside_an_occluder() {
     let (n, h, w, _) = run_case(&c, &rays, 1e-4);
     assert_eq!((h, w), (n, n));
 }
+
+// ------------------------------------------------------------- window light
+
+/// Parallel light through a square window with a box in the room, against a
+/// brute force written from the definition: a point is lit when the ray from
+/// it towards the light passes through the window polygon (tested with the
+/// plane and the square's edges) and crosses no triangle before the window.
+#[test]
+fn window_light_with_occluder_matches_brute_force() {
+    use tyndall_core::light::window::WindowSource;
+    use tyndall_core::render::stage::PreparedWindow;
+    let to_light = DVec3::new(0.4, -0.3, 1.0).normalize();
+    // A 2 m × 2 m skylight at z = 4.
+    let corners = [[-1.0, -1.0, 4.0], [1.0, -1.0, 4.0], [1.0, 1.0, 4.0], [-1.0, 1.0, 4.0]];
+    let irradiance = 50.0;
+    let tris = cube(DVec3::new(0.0, 0.2, 2.0), DVec3::new(0.3, 0.3, 0.3));
+    let positions: Vec<DVec3> = tris.iter().flat_map(|t| t.iter().copied()).collect();
+    let indices: Vec<[u32; 3]> = (0..tris.len() as u32).map(|k| [3 * k, 3 * k + 1, 3 * k + 2]).collect();
+    let mut lights = StageLights {
+        points: vec![],
+        windows: vec![PreparedWindow {
+            light: WindowSource::new("w", to_light, [irradiance; 3], &corners),
+            shadows: None,
+        }],
+    };
+    lights.build_shadows(&[IndexedMesh {
+        positions: &positions,
+        triangles: &indices,
+    }]);
+    let bvh = Bvh::build(tris.iter().map(|t| Triangle::new(t[0], t[1], t[2])).collect());
+    let (sigma_s, sigma_t, phase) = (0.08, 0.1, Phase::Hg(0.4));
+    let media = [world(sigma_s, sigma_t - sigma_s, phase)];
+    let lit = |x: DVec3| -> bool {
+        // Where the ray towards the light meets the plane z = 4.
+        let s = (4.0 - x.z) / to_light.z;
+        if s <= 0.0 {
+            return false;
+        }
+        let p = x + to_light * s;
+        if p.x.abs() > 1.0 || p.y.abs() > 1.0 {
+            return false;
+        }
+        !tris.iter().any(|t| segment_hits(x, p, t))
+    };
+    let integrand = |o: DVec3, d: DVec3, t: f64| -> f64 {
+        let x = o + d * t;
+        let s = (4.0 - x.z) / to_light.z;
+        sigma_s * phase.eval(d.dot(to_light)) * irradiance * (-sigma_t * (t + s)).exp()
+    };
+    let gl = GaussLegendre::new(20);
+    let mut rng = Rng(21);
+    let (mut n, mut honest, mut lit_rays, mut shadowed_pieces) = (0, 0, 0, 0);
+    for _ in 0..60 {
+        let o = DVec3::new(rng.range(-4.0, 4.0), rng.range(-6.0, -3.0), rng.range(0.5, 3.5));
+        let target = DVec3::new(rng.range(-1.0, 1.0), rng.range(-1.0, 1.0), rng.range(0.5, 3.5));
+        let d = (target - o).normalize();
+        let s_max = bvh.closest_hit(o, d, 0.0, 40.0).map(|h| h.t).unwrap_or(40.0);
+        let ray = ViewRay { origin: o, dir: d, s_max };
+        let (got, est, _) = shade(&lights, &media, Some(&bvh), &ray, 1e-6);
+        // Brute force: boundaries by dense sampling and bisection, Gauss-Legendre per lit piece.
+        let m = 20000;
+        let ts: Vec<f64> = (0..=m).map(|k| s_max * k as f64 / m as f64).collect();
+        let flags: Vec<bool> = ts.iter().map(|t| lit(o + d * *t)).collect();
+        let mut cuts = vec![0.0];
+        for k in 0..m {
+            if flags[k] != flags[k + 1] {
+                let (mut a, mut b) = (ts[k], ts[k + 1]);
+                for _ in 0..80 {
+                    let mid = 0.5 * (a + b);
+                    if lit(o + d * mid) == flags[k] {
+                        a = mid;
+                    } else {
+                        b = mid;
+                    }
+                }
+                cuts.push(0.5 * (a + b));
+            }
+        }
+        cuts.push(s_max);
+        shadowed_pieces += cuts.len().saturating_sub(4);
+        let mut want = 0.0;
+        for w in cuts.windows(2) {
+            if w[1] > w[0] && lit(o + d * (0.5 * (w[0] + w[1]))) {
+                for k in 0..16 {
+                    let (a, b) = (w[0] + (w[1] - w[0]) * k as f64 / 16.0, w[0] + (w[1] - w[0]) * (k + 1) as f64 / 16.0);
+                    want += gl.integrate(&|t: f64| [integrand(o, d, t)], a, b)[0];
+                }
+            }
+        }
+        assert!(got.is_finite() && got >= 0.0);
+        n += 1;
+        lit_rays += (want > 0.0) as usize;
+        if (got - want).abs() <= est + 1e-9 * want + 1e-300 {
+            honest += 1;
+        } else {
+            println!("  window: o={o} d={d} got {got:e} want {want:e} est {est:e}");
+        }
+    }
+    println!(
+        "window light: {n} rays ({lit_rays} cross the lit prism, {shadowed_pieces} extra boundary pieces), error within the estimate on {honest}"
+    );
+    assert_eq!(honest, n);
+    assert!(
+        lit_rays >= 30 && shadowed_pieces > 0,
+        "the rays must exercise the prism and the shadow"
+    );
+}
