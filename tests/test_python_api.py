@@ -86,8 +86,11 @@ def test_render_each_example_returns_float32_layers(path: Path) -> None:
     depth = layers["depth"]
     hit = depth != DEPTH_NO_HIT
     assert np.all(depth[hit] > 0.0)
-    # Both examples have a ground plane below a camera above it: some rays hit, some see sky.
-    assert hit.any() and (~hit).any()
+    # Every example has surfaces; the outdoor fog examples also show sky (the
+    # dry-ice stage is enclosed by its floor and back wall).
+    assert hit.any()
+    if "fog" in path.stem:
+        assert (~hit).any()
     assert report["stats"]["rays_hit_surface"] == int(hit.sum())
     if "error" in layers:
         # The report summarises the per-pixel error layer (f64 before f32 storage): max_abs,
