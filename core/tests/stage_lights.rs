@@ -848,3 +848,23 @@ fn window_light_with_occluder_matches_brute_force() {
         "the rays must exercise the prism and the shadow"
     );
 }
+
+/// A spot whose cone no view ray meets is left out and the report says so;
+/// the other spot is computed.
+#[test]
+fn light_outside_the_view_is_reported_left_out() {
+    let json = r#"{"version": 1,
+      "camera": {"type": "perspective", "position": [0, -8, 1.5], "orientation": {"look_at": {"target": [0, 0, 1.5]}}, "resolution": [32, 18]},
+      "lights": [
+        {"type": "spot", "name": "on_stage", "position": [0, 0, 4], "spot_size_deg": 30},
+        {"type": "spot", "name": "behind_camera", "position": [0, -20, 2], "orientation": {"look_at": {"target": [0, -40, 2]}}, "spot_size_deg": 30}
+      ],
+      "media": [{"type": "homogeneous", "scattering": 0.05, "bounds": "world"}],
+      "output": {"pixel_filter": {"type": "none"}}}"#;
+    let scene = tyndall_core::scene::Scene::from_json_str(json, "test").unwrap();
+    let (images, report) = tyndall_core::render(&scene, None).unwrap();
+    let left: Vec<&str> = report.plan.left_out.iter().map(|l| l.what.as_str()).collect();
+    assert!(left.contains(&"light \"behind_camera\""), "{left:?}");
+    assert!(!left.contains(&"light \"on_stage\""), "{left:?}");
+    assert!(images.inscatter.iter().any(|p| p[0] > 0.0));
+}

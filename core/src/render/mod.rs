@@ -553,6 +553,14 @@ fn report_stage<const C: usize>(stage_lights: &stage::StageLights<C>, stats: &Ro
             crate::light::MIN_LIGHT_DISTANCE
         ));
     }
+    for (k, name) in stage_lights.names().iter().enumerate().take(64) {
+        if stats.stage_crossed & (1 << k) == 0 {
+            report.plan.left_out(
+                format!("light \"{name}\""),
+                "its illumination volume meets no view ray inside a medium (outside the view, behind surfaces, or no medium there): nothing computed for it",
+            );
+        }
+    }
     if stats.stage_segments == 0 && !stage_lights.is_empty() {
         report.plan.left_out(
             "stage lights' in-scatter",
@@ -1175,6 +1183,7 @@ fn render_channels<const C: usize>(scene: &Scene, report: &mut Report, progress:
             lights: per_light,
             stage_segments: p.stage.map_or(0, |s| s.segments),
             stage_skipped: p.stage.map_or(0, |s| s.lights_skipped),
+            stage_crossed: p.stage.map_or(0, |s| s.lights_crossed),
             stage_shadow_rays: p.stage.map_or(0, |s| s.shadow_rays),
             stage_clamped: p.stage.is_some_and(|s| s.clamped),
         }
@@ -1558,6 +1567,7 @@ type CentreSample = ([f32; 3], [f32; 3], u32);
 /// Per-row counts and error maxima of pass 1.
 #[derive(Debug, Default, Clone, Copy)]
 struct RowStats {
+    stage_crossed: u64,
     stage_segments: u64,
     stage_skipped: u64,
     stage_shadow_rays: u64,
@@ -1579,6 +1589,7 @@ fn nan_max(a: f64, b: f64) -> f64 {
 
 impl RowStats {
     fn add(&mut self, s: &Sample) {
+        self.stage_crossed |= s.stage_crossed;
         self.stage_segments += u64::from(s.stage_segments);
         self.stage_skipped += u64::from(s.stage_skipped);
         self.stage_shadow_rays += u64::from(s.stage_shadow_rays);
@@ -1596,6 +1607,7 @@ impl RowStats {
         self.max_rel = nan_max(self.max_rel, s.rel);
     }
     fn merge(&mut self, o: &RowStats) {
+        self.stage_crossed |= o.stage_crossed;
         self.stage_segments += o.stage_segments;
         self.stage_skipped += o.stage_skipped;
         self.stage_shadow_rays += o.stage_shadow_rays;
@@ -1618,6 +1630,7 @@ struct Sample {
     lights: [[f64; 3]; stage::MAX_LIGHT_LAYERS],
     stage_segments: u32,
     stage_skipped: u32,
+    stage_crossed: u64,
     stage_shadow_rays: u32,
     stage_clamped: bool,
     l: [f64; 3],

@@ -82,6 +82,9 @@ pub struct StageShade<const C: usize> {
     pub segments: u32,
     /// Lights whose illumination volume the ray missed (no integral).
     pub lights_skipped: u32,
+    /// Bit k set: light k (per-light layer order, k < 64) crossed this ray's
+    /// media inside its illumination volume.
+    pub lights_crossed: u64,
     /// Shadow rays traced to classify pieces between wedge crossings.
     pub shadow_rays: u32,
     /// Whether every integral reached the tolerance.
@@ -241,6 +244,7 @@ impl<const C: usize> StageLights<C> {
             error: [0.0; C],
             segments: 0,
             lights_skipped: 0,
+            lights_crossed: 0,
             shadow_rays: 0,
             converged: true,
             clamped: false,
@@ -256,6 +260,9 @@ impl<const C: usize> StageLights<C> {
             let l = &p.light;
             ray_cone_intervals(o, d, 0.0, ray.s_max, l.position, l.frame.axis, l.cos_reach, &mut scratch.cone);
             intersect(&scratch.cone, &scratch.media, &mut scratch.pieces);
+            if !scratch.pieces.is_empty() && index < 64 {
+                out.lights_crossed |= 1 << index;
+            }
             let value = self.point_light(p, ray, media, bvh, tolerance, scratch, &mut out);
             if let Some(slot) = per_light.get_mut(index) {
                 *slot = to_rgb(&value);
@@ -265,6 +272,9 @@ impl<const C: usize> StageLights<C> {
         for w in &self.windows {
             w.light.intervals(o, d, 0.0, ray.s_max, &mut scratch.cone);
             intersect(&scratch.cone, &scratch.media, &mut scratch.pieces);
+            if !scratch.pieces.is_empty() && index < 64 {
+                out.lights_crossed |= 1 << index;
+            }
             let value = self.window_light(w, ray, media, bvh, tolerance, scratch, &mut out);
             if let Some(slot) = per_light.get_mut(index) {
                 *slot = to_rgb(&value);
