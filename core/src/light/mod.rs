@@ -140,6 +140,64 @@ impl Table {
         }
     }
 
+    /// Largest θ with a possibly non-zero value in row `r`.
+    fn row_reach(&self, r: usize) -> f64 {
+        let n = self.theta.len();
+        match (0..n).rev().find(|&j| self.values[r][j] > 0.0) {
+            None => 0.0,
+            Some(j) if j + 1 < n => self.theta[j + 1],
+            Some(j) => self.theta[j],
+        }
+    }
+
+    /// An axis-aligned ellipse in the gnomonic plane (`tan θ cos φ`,
+    /// `tan θ sin φ`) holding every direction the table lights, when that is
+    /// tighter than the circular cone (non-axisymmetric tables, reach < 80°):
+    /// between two φ rows the lit reach is at most the larger of theirs, so
+    /// the support is inside the union of circular sectors with those radii;
+    /// the sectors' boundary is sampled finely (including the sector
+    /// corners) and the aspect ratio b/a chosen by a 1-D search for the least
+    /// area, the ellipse then scaled to hold every sampled point and
+    /// inflated by 1e-9. Sectors are convex-free arcs of circles, so the
+    /// sampled arcs are refined until the chord error is below 1e-6.
+    pub fn bounding_ellipse(&self) -> Option<(f64, f64)> {
+        let n = self.phi.len();
+        let reach = self.reach();
+        if n < 2 || reach <= 0.0 || reach >= 80f64.to_radians() {
+            return None;
+        }
+        let two_pi = 2.0 * PI;
+        let mut pts: Vec<(f64, f64)> = Vec::new();
+        for i in 0..n {
+            let (p0, p1) = (self.phi[i], if i + 1 < n { self.phi[i + 1] } else { self.phi[0] + two_pi });
+            let r = self.row_reach(i).max(self.row_reach((i + 1) % n)).tan();
+            // 720 steps per turn: the arc between samples bulges out by
+            // r(1 − cos(π/720)) < 1e-5 r, covered by the final inflation.
+            let steps = (((p1 - p0) / two_pi) * 720.0).ceil().max(1.0) as usize;
+            for k in 0..=steps {
+                let p = p0 + (p1 - p0) * k as f64 / steps as f64;
+                pts.push((r * p.cos(), r * p.sin()));
+            }
+        }
+        let inflate = 1.0 + 2e-5;
+        let mut best: Option<(f64, f64, f64)> = None;
+        for k in 0..=200 {
+            let ratio = 10f64.powf(-1.0 + 2.0 * k as f64 / 200.0);
+            let a = pts
+                .iter()
+                .map(|(x, y)| (x * x + (y / ratio) * (y / ratio)).sqrt())
+                .fold(0.0, f64::max)
+                * inflate;
+            let area = a * a * ratio;
+            if best.is_none_or(|b| area < b.2) {
+                best = Some((a, a * ratio, area));
+            }
+        }
+        let (a, b, area) = best?;
+        let circle = reach.tan() * reach.tan();
+        if area < 0.9 * circle { Some((a, b)) } else { None }
+    }
+
     /// Largest θ with a possibly non-zero value.
     pub fn reach(&self) -> f64 {
         let n = self.theta.len();
@@ -364,6 +422,10 @@ pub struct PointSource<const C: usize> {
     pub cos_reach: f64,
     /// Upper bound of `shape × IES factor`.
     pub max_factor: f64,
+    /// A tighter, elliptical illumination volume for non-axisymmetric tables:
+    /// `(a, b)` such that every lit direction has
+    /// `(tan θ cos φ / a)² + (tan θ sin φ / b)² ≤ 1` (`None`: the circular cone only).
+    pub ellipse: Option<(f64, f64)>,
 }
 
 /// Closest distance at which a view ray is evaluated, m, for a light of
@@ -432,6 +494,10 @@ impl<const C: usize> PointSource<C> {
         ies: Option<(Arc<ies::IesProfile>, f64)>,
     ) -> Self {
         let frame = LightFrame::new(position, orientation);
+        let ellipse = match (&shape, &ies) {
+            (Shape::Tabulated(t), None) => t.bounding_ellipse(),
+            _ => None,
+        };
         let mut cos_reach = shape.cos_reach();
         let mut max_factor = shape.max_value();
         if let Some((p, s)) = &ies {
@@ -448,6 +514,7 @@ impl<const C: usize> PointSource<C> {
             min_distance: radius_m.max(MIN_LIGHT_DISTANCE),
             cos_reach,
             max_factor,
+            ellipse,
         }
     }
 }
@@ -540,9 +607,108 @@ pub fn ray_cone_intervals(o: DVec3, d: DVec3, lo: f64, hi: f64, apex: DVec3, axi
     }
 }
 
+/// The intervals of `[lo, hi]` where `o + t·d` is inside the elliptical cone
+/// of a light (`ellipse = (a, b)` in the gnomonic plane of its frame): the
+/// light frame scaled by `1/a`, `1/b` maps it onto the circular cone of
+/// half-angle 45°, and the ray's parameter is kept by normalising the mapped
+/// direction.
+#[allow(clippy::too_many_arguments)]
+pub fn ray_elliptic_cone_intervals(
+    o: DVec3,
+    d: DVec3,
+    lo: f64,
+    hi: f64,
+    apex: DVec3,
+    frame: &LightFrame,
+    ellipse: (f64, f64),
+    out: &mut Vec<(f64, f64)>,
+) {
+    let map = |v: DVec3| DVec3::new(v.dot(frame.x) / ellipse.0, v.dot(frame.y) / ellipse.1, v.dot(frame.axis));
+    let (w, dm) = (map(o - apex), map(d));
+    let len = dm.length();
+    if len == 0.0 || !len.is_finite() {
+        out.clear();
+        return;
+    }
+    ray_cone_intervals(
+        w,
+        dm / len,
+        lo * len,
+        hi * len,
+        DVec3::ZERO,
+        DVec3::Z,
+        std::f64::consts::FRAC_1_SQRT_2,
+        out,
+    );
+    for iv in out.iter_mut() {
+        iv.0 /= len;
+        iv.1 /= len;
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn headlight_table_gets_a_tight_ellipse_holding_every_lit_direction() {
+        // Wide along local X (±40°), narrow along Y (±8°), like a low-beam headlight.
+        let theta: Vec<f64> = (0..=45).map(|k| (k as f64).to_radians()).collect();
+        let phi: Vec<f64> = (0..24).map(|k| (15.0 * k as f64).to_radians()).collect();
+        let values: Vec<Vec<f64>> = phi
+            .iter()
+            .map(|p| {
+                let reach = 1.0 / ((p.cos() / 40f64.to_radians().tan()).powi(2) + (p.sin() / 8f64.to_radians().tan()).powi(2)).sqrt();
+                theta
+                    .iter()
+                    .map(|t| if t.tan() < reach { 1.0 - t.tan() / reach } else { 0.0 })
+                    .collect()
+            })
+            .collect();
+        let t = Table { theta, phi, values };
+        let (a, b) = t.bounding_ellipse().expect("non-axisymmetric: an ellipse");
+        assert!(a > 2.0 * b, "a = {a}, b = {b}");
+        let frame = LightFrame {
+            axis: DVec3::NEG_Z,
+            x: DVec3::X,
+            y: DVec3::Y,
+        };
+        let mut rng = 5u64;
+        let mut next = || {
+            rng = rng.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            ((rng >> 11) as f64) / ((1u64 << 53) as f64)
+        };
+        let mut lit = 0;
+        for _ in 0..200_000 {
+            let (th, ph) = (next() * 0.8, next() * 2.0 * PI);
+            if t.eval(th, ph) > 0.0 {
+                lit += 1;
+                let (x, y) = (th.tan() * ph.cos(), th.tan() * ph.sin());
+                assert!(
+                    (x / a).powi(2) + (y / b).powi(2) <= 1.0,
+                    "lit direction θ={th} φ={ph} outside the ellipse"
+                );
+            }
+        }
+        assert!(lit > 1000);
+        // Ray intervals agree with the pointwise test.
+        let apex = DVec3::new(0.0, 0.0, 1.0);
+        let mut out = Vec::new();
+        for _ in 0..300 {
+            let o = DVec3::new(next() * 8.0 - 4.0, next() * 8.0 - 4.0, next() * 2.0 - 1.5);
+            let d = DVec3::new(next() - 0.5, next() - 0.5, next() - 0.5).normalize();
+            ray_elliptic_cone_intervals(o, d, 0.0, 10.0, apex, &frame, (a, b), &mut out);
+            for k in 0..200 {
+                let s = 10.0 * (k as f64 + 0.5) / 200.0;
+                let v = o + d * s - apex;
+                let z = -v.z;
+                let inside = z > 0.0 && (v.x / a).powi(2) + (v.y / b).powi(2) <= z * z;
+                let listed = out.iter().any(|(p, q)| s >= *p && s <= *q);
+                let q = ((v.x / a).powi(2) + (v.y / b).powi(2)).sqrt() - z;
+                assert!(q.abs() < 1e-9 || inside == listed, "s={s} inside={inside} listed={listed}");
+            }
+        }
+    }
 
     #[test]
     fn cone_intervals_match_pointwise_predicate() {

@@ -461,7 +461,13 @@ fn prepare_stage_lights<const C: usize>(scene: &Scene, report: &mut Report) -> R
 }
 
 fn describe_point<const C: usize>(src: &crate::light::PointSource<C>, power_w: f64) -> String {
-    let reach = if src.cos_reach <= -1.0 {
+    let reach = if let Some((a, b)) = src.ellipse {
+        format!(
+            "an elliptical cone of half-angles {:.3}° (local X) × {:.3}° (local Y)",
+            a.atan().to_degrees(),
+            b.atan().to_degrees()
+        )
+    } else if src.cos_reach <= -1.0 {
         "every direction".to_string()
     } else {
         format!("a cone of half-angle {:.4}°", src.cos_reach.clamp(-1.0, 1.0).acos().to_degrees())

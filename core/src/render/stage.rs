@@ -35,7 +35,7 @@
 use crate::geometry::bvh::Bvh;
 use crate::light::shadow::{IndexedMesh, Projector, ShadowWedges};
 use crate::light::window::WindowSource;
-use crate::light::{PointSource, ray_cone_intervals};
+use crate::light::{PointSource, ray_cone_intervals, ray_elliptic_cone_intervals};
 use crate::medium::{PreparedMedium, ViewRay};
 use crate::numeric::integrate_adaptive;
 use glam::DVec3;
@@ -258,7 +258,10 @@ impl<const C: usize> StageLights<C> {
         let mut index = 0;
         for p in &self.points {
             let l = &p.light;
-            ray_cone_intervals(o, d, 0.0, ray.s_max, l.position, l.frame.axis, l.cos_reach, &mut scratch.cone);
+            match l.ellipse {
+                Some(e) => ray_elliptic_cone_intervals(o, d, 0.0, ray.s_max, l.position, &l.frame, e, &mut scratch.cone),
+                None => ray_cone_intervals(o, d, 0.0, ray.s_max, l.position, l.frame.axis, l.cos_reach, &mut scratch.cone),
+            }
             intersect(&scratch.cone, &scratch.media, &mut scratch.pieces);
             if !scratch.pieces.is_empty() && index < 64 {
                 out.lights_crossed |= 1 << index;
