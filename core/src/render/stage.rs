@@ -122,6 +122,18 @@ fn intersect(a: &[(f64, f64)], b: &[(f64, f64)], out: &mut Vec<(f64, f64)>) {
     }
 }
 
+/// Adds one segment's integral to the light's total and to the ray's sums.
+#[inline]
+fn add_integral<const C: usize>(total: &mut [f64; C], out: &mut StageShade<C>, r: &crate::numeric::Integral<C>) {
+    out.segments += 1;
+    out.converged &= r.converged;
+    for c in 0..C {
+        total[c] += r.value[c];
+        out.inscatter[c] += r.value[c];
+        out.error[c] += r.error[c];
+    }
+}
+
 /// Where the media are non-zero on `ray`: the union of their segments.
 fn media_support<const C: usize>(ray: &ViewRay, media: &[PreparedMedium<C>], out: &mut Vec<(f64, f64)>) {
     out.clear();
@@ -475,13 +487,7 @@ impl<const C: usize> StageLights<C> {
                     continue;
                 }
                 let r = integrate_adaptive(integrand, wdw[0], wdw[1], 1e-300, tolerance, 200);
-                out.segments += 1;
-                out.converged &= r.converged;
-                for c in 0..C {
-                    total[c] += r.value[c];
-                    out.inscatter[c] += r.value[c];
-                    out.error[c] += r.error[c];
-                }
+                add_integral(&mut total, out, &r);
             }
         }
         // Rounding of the segment ends: an end on the cone is a root of
@@ -587,13 +593,7 @@ impl<const C: usize> StageLights<C> {
                 };
                 integrate_adaptive(tail, 0.0, 1.0, 1e-300, tolerance, 200)
             };
-            out.segments += 1;
-            out.converged &= r.converged;
-            for c in 0..C {
-                total[c] += r.value[c];
-                out.inscatter[c] += r.value[c];
-                out.error[c] += r.error[c];
-            }
+            add_integral(&mut total, out, &r);
         }
         total
     }
