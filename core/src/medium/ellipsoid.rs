@@ -174,18 +174,9 @@ impl<const C: usize> Ellipsoid<C> {
         if !self.contains(p) {
             return [0.0; C];
         }
-        let mut out = lights.ambient;
-        for sun in &lights.suns {
-            let ph = sun.phase(&self.phase, ray.dir);
-            let ts = self.sun_transmittance_at(p, sun.to_sun);
-            for c in 0..C {
-                out[c] += ph * sun.irradiance[c] * ts[c];
-            }
-        }
-        for c in 0..C {
-            out[c] *= self.scattering[c];
-        }
-        out
+        super::scattering_source(&self.scattering, &self.phase, ray.dir, lights, |sun| {
+            Some(self.sun_transmittance_at(p, sun.to_sun))
+        })
     }
 
     /// Single scattering of this ellipsoid alone on the ray: ambient in closed

@@ -128,21 +128,9 @@ impl<const C: usize> FogLayer<C> {
         if p.z < self.ground || p.z > self.top {
             return [0.0; C];
         }
-        let mut out = lights.ambient;
-        for sun in &lights.suns {
-            if !self.sun_is_direct(sun.to_sun) {
-                continue;
-            }
-            let ph = sun.phase(&self.phase, ray.dir);
-            let ts = self.sun_transmittance_at(p, sun.to_sun);
-            for c in 0..C {
-                out[c] += ph * sun.irradiance[c] * ts[c];
-            }
-        }
-        for c in 0..C {
-            out[c] *= self.scattering[c];
-        }
-        out
+        super::scattering_source(&self.scattering, &self.phase, ray.dir, lights, |sun| {
+            self.sun_is_direct(sun.to_sun).then(|| self.sun_transmittance_at(p, sun.to_sun))
+        })
     }
 
     /// Closed-form fog and object components on the ray.

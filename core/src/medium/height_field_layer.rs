@@ -512,18 +512,9 @@ impl<const C: usize> HeightFieldLayer<C> {
         if side.scattering.iter().all(|v| *v == 0.0) {
             return [0.0; C];
         }
-        let mut out = lights.ambient;
-        for sun in &lights.suns {
-            let ph = sun.phase(&side.phase, ray.dir);
-            let ts = self.sun_transmittance_at(p, sun.to_sun);
-            for c in 0..C {
-                out[c] += ph * sun.irradiance[c] * ts[c];
-            }
-        }
-        for c in 0..C {
-            out[c] *= side.scattering[c];
-        }
-        out
+        super::scattering_source(&side.scattering, &side.phase, ray.dir, lights, |sun| {
+            Some(self.sun_transmittance_at(p, sun.to_sun))
+        })
     }
 
     /// Single scattering of the layer alone on the ray: ambient in closed form

@@ -112,21 +112,9 @@ impl<const C: usize> Homogeneous<C> {
         {
             return [0.0; C];
         }
-        let mut out = [0.0; C];
-        for (c, o) in out.iter_mut().enumerate() {
-            *o = lights.ambient[c];
-        }
-        for sun in &lights.suns {
-            let ph = sun.phase(&self.phase, ray.dir);
-            let ts = self.sun_transmittance_at(p, sun.to_sun);
-            for c in 0..C {
-                out[c] += ph * sun.irradiance[c] * ts[c];
-            }
-        }
-        for c in 0..C {
-            out[c] *= self.scattering[c];
-        }
-        out
+        super::scattering_source(&self.scattering, &self.phase, ray.dir, lights, |sun| {
+            Some(self.sun_transmittance_at(p, sun.to_sun))
+        })
     }
 
     /// Closed-form single scattering on the ray.

@@ -284,6 +284,32 @@ impl<const C: usize> PreparedMedium<C> {
     }
 }
 
+/// `σ_s·(L_amb + Σ_k p(μ_k)·E_k·T_k)`: the single-scattering source of a medium
+/// with one phase function at a point (Klassen eq 1.11's integrand without the
+/// view transmittance). `sun_t` gives each sun's transmittance to the point, or
+/// `None` where the sun does not reach it directly.
+#[inline]
+pub(crate) fn scattering_source<const C: usize>(
+    scattering: &[f64; C],
+    phase: &phase::PhaseFunction,
+    view_dir: DVec3,
+    lights: &LightSet<C>,
+    sun_t: impl Fn(&SunSource<C>) -> Option<[f64; C]>,
+) -> [f64; C] {
+    let mut out = lights.ambient;
+    for sun in &lights.suns {
+        let Some(ts) = sun_t(sun) else { continue };
+        let ph = sun.phase(phase, view_dir);
+        for c in 0..C {
+            out[c] += ph * sun.irradiance[c] * ts[c];
+        }
+    }
+    for c in 0..C {
+        out[c] *= scattering[c];
+    }
+    out
+}
+
 /// Rounding bound on a closed form of the shape `a·(1 − e^{−τ})` evaluated
 /// with expm1 and a handful of products: relative `k·ε`, the number of
 /// roundings `k` counted generously.

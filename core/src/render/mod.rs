@@ -402,28 +402,25 @@ fn prepare_stage_lights<const C: usize>(scene: &Scene, report: &mut Report) -> R
     for (i, l) in scene.lights.iter().enumerate() {
         let label = light_label(i, l);
         match l {
-            Light::Point(p) => {
-                if p.power_w == 0.0 || p.color.iter().all(|c| *c == 0.0) || p.ies.as_ref().is_some_and(|r| r.strength == 0.0) {
+            Light::Point(_) | Light::Spot(_) => {
+                let (power_w, color, ies_ref) = match l {
+                    Light::Point(p) => (p.power_w, p.color, &p.ies),
+                    Light::Spot(p) => (p.power_w, p.color, &p.ies),
+                    _ => unreachable!("matched above"),
+                };
+                if power_w == 0.0 || color.iter().all(|c| *c == 0.0) || ies_ref.as_ref().is_some_and(|r| r.strength == 0.0) {
                     report
                         .plan
                         .left_out(label, "no contribution: zero power, black colour or zero IES strength");
                     continue;
                 }
-                let ies = load_ies(i, &p.ies)?;
-                let src = crate::light::PointSource::from_point(p, colour_channels::<C>(p.color), ies);
-                report.plan.computed(label, describe_point(&src, p.power_w));
-                out.points.push(stage::PreparedPoint { light: src, shadows: None });
-            }
-            Light::Spot(p) => {
-                if p.power_w == 0.0 || p.color.iter().all(|c| *c == 0.0) || p.ies.as_ref().is_some_and(|r| r.strength == 0.0) {
-                    report
-                        .plan
-                        .left_out(label, "no contribution: zero power, black colour or zero IES strength");
-                    continue;
-                }
-                let ies = load_ies(i, &p.ies)?;
-                let src = crate::light::PointSource::from_spot(p, colour_channels::<C>(p.color), ies);
-                report.plan.computed(label, describe_point(&src, p.power_w));
+                let ies = load_ies(i, ies_ref)?;
+                let src = match l {
+                    Light::Point(p) => crate::light::PointSource::from_point(p, colour_channels::<C>(color), ies),
+                    Light::Spot(p) => crate::light::PointSource::from_spot(p, colour_channels::<C>(color), ies),
+                    _ => unreachable!("matched above"),
+                };
+                report.plan.computed(label, describe_point(&src, power_w));
                 out.points.push(stage::PreparedPoint { light: src, shadows: None });
             }
             Light::Window(wl) => {
