@@ -100,7 +100,7 @@ fn parse_layers(names: Vec<String>) -> PyResult<Vec<LayerKind>> {
         .map(|n| {
             serde_json_layer(&n).ok_or_else(|| {
                 PyValueError::new_err(format!(
-                    "unknown layer {n:?}: expected inscatter, transmittance, depth, sun_transmittance, error or inscatter_per_light"
+                    "unknown layer {n:?}: expected inscatter, transmittance, depth, sun_transmittance, error, inscatter_per_light or surface_transmittance_per_light"
                 ))
             })
         })
@@ -115,6 +115,7 @@ fn serde_json_layer(name: &str) -> Option<LayerKind> {
         LayerKind::SunTransmittance,
         LayerKind::Error,
         LayerKind::InscatterPerLight,
+        LayerKind::SurfaceTransmittancePerLight,
     ]
     .into_iter()
     .find(|k| k.to_string() == name)
@@ -141,7 +142,7 @@ fn rgb_array<'py>(py: Python<'py>, px: &[[f32; 3]], w: usize, h: usize) -> PyRes
 
 /// Renders a scene. Returns `(layers, report)`: a dict of float32 numpy
 /// arrays (`inscatter`, `transmittance`, `sun_transmittance`, `error` and
-/// `inscatter.<light name>` per stage light: H×W×3; `depth`: H×W), row 0 at the top, and the report as a JSON string.
+/// `inscatter.<light name>` and `surface_transmittance.<light name>` per stage light: H×W×3; `depth`: H×W), row 0 at the top, and the report as a JSON string.
 /// The interpreter is released while rendering.
 #[pyfunction]
 #[pyo3(signature = (scene, tolerance = None, threads = None, layers = None))]
@@ -166,6 +167,12 @@ fn render<'py>(
             LayerKind::Depth => PyArray1::from_vec(py, images.depth.clone()).reshape([h, w])?.into_any(),
             LayerKind::InscatterPerLight => {
                 for (name, px) in images.light_layer_names.iter().zip(&images.light_inscatter) {
+                    out.set_item(name, rgb_array(py, px, w, h)?)?;
+                }
+                continue;
+            }
+            LayerKind::SurfaceTransmittancePerLight => {
+                for (name, px) in images.surface_layer_names.iter().zip(&images.light_surface_transmittance) {
                     out.set_item(name, rgb_array(py, px, w, h)?)?;
                 }
                 continue;

@@ -876,6 +876,13 @@ pub enum LayerKind {
     Error,
     /// One `inscatter.<light name>` layer per point, spot and window light, RGB, W·m⁻²·sr⁻¹.
     InscatterPerLight,
+    /// One `surface_transmittance.<light name>` layer per point, spot and
+    /// window light, RGB, 0..1: the medium's transmittance along the whole
+    /// path of that light's direct light to the camera via the visible surface,
+    /// T(light → surface) · T(surface → camera). Geometry shadows are not in it
+    /// (a renderer's light group has them). Where the pixel sees no surface: the
+    /// view transmittance. Filtered pixels average over the surface samples only.
+    SurfaceTransmittancePerLight,
 }
 
 /// Spectral or RGB computation.
@@ -1713,6 +1720,7 @@ impl fmt::Display for LayerKind {
             LayerKind::SunTransmittance => "sun_transmittance",
             LayerKind::Error => "error",
             LayerKind::InscatterPerLight => "inscatter_per_light",
+            LayerKind::SurfaceTransmittancePerLight => "surface_transmittance_per_light",
         };
         f.write_str(s)
     }

@@ -89,6 +89,12 @@ pub struct Images {
     pub light_inscatter: Vec<Vec<[f32; 3]>>,
     /// EXR layer names of `light_inscatter` (`inscatter.<light name>`).
     pub light_layer_names: Vec<String>,
+    /// Per stage light, the medium transmittance of its direct light via the
+    /// visible surface to the camera (see [`LayerKind::SurfaceTransmittancePerLight`]);
+    /// empty unless `surface_transmittance_per_light` was requested.
+    pub light_surface_transmittance: Vec<Vec<[f32; 3]>>,
+    /// EXR layer names of `light_surface_transmittance` (`surface_transmittance.<light name>`).
+    pub surface_layer_names: Vec<String>,
 }
 
 fn split_rgb(name: &str, px: &[[f32; 3]]) -> ImageLayer {
@@ -113,6 +119,12 @@ impl Images {
                 }
                 continue;
             }
+            if *k == LayerKind::SurfaceTransmittancePerLight {
+                for (name, px) in self.surface_layer_names.iter().zip(&self.light_surface_transmittance) {
+                    out.push(split_rgb(name, px));
+                }
+                continue;
+            }
             out.push(match k {
                 LayerKind::Inscatter => split_rgb("inscatter", &self.inscatter),
                 LayerKind::Transmittance => split_rgb("transmittance", &self.transmittance),
@@ -122,7 +134,7 @@ impl Images {
                     name: "depth".into(),
                     channels: vec![("Z".into(), self.depth.clone())],
                 },
-                LayerKind::InscatterPerLight => unreachable!("handled above"),
+                LayerKind::InscatterPerLight | LayerKind::SurfaceTransmittancePerLight => unreachable!("handled above"),
             });
         }
         out
@@ -447,7 +459,10 @@ fn prepare_stage_lights<const C: usize>(scene: &Scene, report: &mut Report) -> R
             _ => {}
         }
     }
-    if out.len() > stage::MAX_LIGHT_LAYERS && scene.output.layers.contains(&LayerKind::InscatterPerLight) {
+    if out.len() > stage::MAX_LIGHT_LAYERS
+        && (scene.output.layers.contains(&LayerKind::InscatterPerLight)
+            || scene.output.layers.contains(&LayerKind::SurfaceTransmittancePerLight))
+    {
         report.warnings.push(format!(
             "{} stage lights: per-light layers are written for the first {} only; `inscatter` contains all of them",
             out.len(),
@@ -572,12 +587,13 @@ fn report_stage<const C: usize>(stage_lights: &stage::StageLights<C>, stats: &Ro
     }
 }
 
-/// `inscatter.<name>` layer names, unique and without '.' inside the name.
-fn light_layer_names(names: &[String]) -> Vec<String> {
+/// `<prefix>.<name>` layer names (`inscatter.<name>`, …), unique and without
+/// '.' inside the name.
+fn per_light_layer_names(prefix: &str, names: &[String]) -> Vec<String> {
     let mut out: Vec<String> = Vec::new();
     for n in names {
         let clean: String = n.chars().map(|c| if c == '.' || c.is_control() { '_' } else { c }).collect();
-        let base = format!("inscatter.{}", if clean.is_empty() { "light" } else { &clean });
+        let base = format!("{prefix}.{}", if clean.is_empty() { "light" } else { &clean });
         let mut name = base.clone();
         let mut k = 2;
         while out.contains(&name) {
@@ -822,6 +838,34 @@ struct PixelOut<const C: usize> {
     surface: u32,
     numeric: Option<bool>,
     in_medium: bool,
+    /// The surface point the view ray ends on.
+    surface_point: Option<DVec3>,
+}
+
+/// Optical depth of the medium between `p` and the `k`-th stage light
+/// (per-light layer order: points, then windows): to a point light's
+/// position; for a window light, back along the light's direction to the
+/// window plane (the prism's light enters there; nothing on the light's side).
+fn light_path_depth<const C: usize>(stage_lights: &stage::StageLights<C>, media: &[PreparedMedium<C>], k: usize, p: DVec3) -> [f64; C] {
+    let end = if let Some(pt) = stage_lights.points.get(k) {
+        pt.light.position
+    } else if let Some(wl) = stage_lights.windows.get(k - stage_lights.points.len()) {
+        let s = wl.light.distance_to_window(p);
+        if s.is_nan() || s <= 0.0 {
+            return [0.0; C];
+        }
+        p + wl.light.to_light * s
+    } else {
+        return [0.0; C];
+    };
+    let mut tau = [0.0; C];
+    for m in media {
+        let d = m.optical_depth_between(p, end);
+        for c in 0..C {
+            tau[c] += d[c];
+        }
+    }
+    tau
 }
 
 #[allow(clippy::too_many_arguments)]
@@ -914,6 +958,7 @@ fn shade_pixel<const C: usize>(
         surface,
         numeric,
         in_medium: n_active > 0,
+        surface_point: hit.then(|| ray.origin + ray.dir * ray.s_max),
     }
 }
 
@@ -1103,6 +1148,7 @@ fn render_channels<const C: usize>(scene: &Scene, report: &mut Report, progress:
     }
     let n_stage = stage_lights.len().min(stage::MAX_LIGHT_LAYERS);
     let want_per_light = scene.output.layers.contains(&LayerKind::InscatterPerLight) && n_stage > 0;
+    let want_surface_t = scene.output.layers.contains(&LayerKind::SurfaceTransmittancePerLight) && n_stage > 0;
     let to_rgb = |v: &[f64; C]| -> [f64; 3] {
         if C == 3 {
             [v[0], v[1], v[2]]
@@ -1158,6 +1204,25 @@ fn render_channels<const C: usize>(scene: &Scene, report: &mut Report, progress:
                 [r.error[0], r.error[1], r.error[2]],
             )
         };
+        // Per light: T_view · T(surface → light), weighted by `hit` so that the
+        // filter averages over the surface samples only.
+        let mut surface_t = [[0.0; 3]; stage::MAX_LIGHT_LAYERS];
+        if want_surface_t && let Some(sp) = p.surface_point {
+            for (k, out) in surface_t.iter_mut().enumerate().take(n_stage) {
+                let tau = light_path_depth(&stage_lights, &media, k, sp);
+                let mut tc = [0.0; C];
+                for c in 0..C {
+                    tc[c] = p.result.transmittance[c] * (-tau[c]).exp();
+                }
+                *out = if spectral {
+                    let mut buf = [0.0; SPECTRAL_SAMPLES];
+                    buf.copy_from_slice(&tc[..SPECTRAL_SAMPLES]);
+                    spectrum::spectral_transmittance_to_rgb(&buf)
+                } else {
+                    [tc[0], tc[1], tc[2]]
+                };
+            }
+        }
         // Closed forms carry their rounding bound as a relative constant; only
         // numeric pixels need a division.
         let mut rel = p.result.rel_bound;
@@ -1184,6 +1249,8 @@ fn render_channels<const C: usize>(scene: &Scene, report: &mut Report, progress:
             numeric,
             in_medium: p.in_medium,
             lights: per_light,
+            surface_t,
+            hit_weight: if p.hit { 1.0 } else { 0.0 },
             stage_segments: p.stage.map_or(0, |s| s.segments),
             stage_skipped: p.stage.map_or(0, |s| s.lights_skipped),
             stage_crossed: p.stage.map_or(0, |s| s.lights_crossed),
@@ -1203,7 +1270,9 @@ fn render_channels<const C: usize>(scene: &Scene, report: &mut Report, progress:
     let mut error = vec![[0f32; 3]; if want_error { n } else { h }];
     let (sun_chunk, err_chunk) = (if want_sun_t { w } else { 1 }, if want_error { w } else { 1 });
     let done = AtomicUsize::new(0);
-    let row_stats: Vec<(RowStats, Vec<[f32; 3]>)> = inscatter
+    // Per row: its stats, and the per-light in-scatter and surface-transmittance rows.
+    type RowOut = (RowStats, Vec<[f32; 3]>, Vec<[f32; 3]>);
+    let row_stats: Vec<RowOut> = inscatter
         .par_chunks_mut(w)
         .zip(transmittance.par_chunks_mut(w))
         .zip(depth.par_chunks_mut(w))
@@ -1214,11 +1283,17 @@ fn render_channels<const C: usize>(scene: &Scene, report: &mut Report, progress:
         .map(|(row, (((((l_row, t_row), d_row), id_row), s_row), e_row))| {
             let mut st = RowStats::default();
             let mut light_row = if want_per_light { vec![[0f32; 3]; n_stage * w] } else { Vec::new() };
+            let mut surface_row = if want_surface_t { vec![[0f32; 3]; n_stage * w] } else { Vec::new() };
             for col in 0..w {
                 let s = sample(col as f64 + 0.5, row as f64 + 0.5);
                 if want_per_light {
                     for k in 0..n_stage {
                         light_row[k * w + col] = s.lights[k].map(|v| v as f32);
+                    }
+                }
+                if want_surface_t {
+                    for k in 0..n_stage {
+                        surface_row[k * w + col] = surface_transmittance_of(&s, k);
                     }
                 }
                 l_row[col] = s.l.map(|v| v as f32);
@@ -1237,7 +1312,7 @@ fn render_channels<const C: usize>(scene: &Scene, report: &mut Report, progress:
             if let Some(cb) = progress {
                 cb(d, h);
             }
-            (st, light_row)
+            (st, light_row, surface_row)
         })
         .collect();
     let mut stats = RowStats::default();
@@ -1246,11 +1321,21 @@ fn render_channels<const C: usize>(scene: &Scene, report: &mut Report, progress:
     } else {
         Vec::new()
     };
-    for (row, (r, light_row)) in row_stats.iter().enumerate() {
+    let mut light_surface_transmittance: Vec<Vec<[f32; 3]>> = if want_surface_t {
+        vec![vec![[1f32; 3]; n]; n_stage]
+    } else {
+        Vec::new()
+    };
+    for (row, (r, light_row, surface_row)) in row_stats.iter().enumerate() {
         stats.merge(r);
         if want_per_light {
             for (k, img) in light_inscatter.iter_mut().enumerate() {
                 img[row * w..(row + 1) * w].copy_from_slice(&light_row[k * w..(k + 1) * w]);
+            }
+        }
+        if want_surface_t {
+            for (k, img) in light_surface_transmittance.iter_mut().enumerate() {
+                img[row * w..(row + 1) * w].copy_from_slice(&surface_row[k * w..(k + 1) * w]);
             }
         }
     }
@@ -1448,6 +1533,9 @@ fn render_channels<const C: usize>(scene: &Scene, report: &mut Report, progress:
             for (k, img) in light_inscatter.iter_mut().enumerate() {
                 img[*i] = s.lights[k].map(|v| v as f32);
             }
+            for (k, img) in light_surface_transmittance.iter_mut().enumerate() {
+                img[*i] = surface_transmittance_of(s, k);
+            }
             transmittance[*i] = s.t.map(|v| v.clamp(0.0, 1.0) as f32);
             if want_sun_t {
                 sun_t[*i] = s.st.map(|v| v.clamp(0.0, 1.0) as f32);
@@ -1545,8 +1633,23 @@ fn render_channels<const C: usize>(scene: &Scene, report: &mut Report, progress:
     if !stage_lights.is_empty() {
         report_stage(&stage_lights, &stats, report);
     }
+    if want_surface_t {
+        report.plan.computed(
+            format!("surface_transmittance.<light> for {n_stage} stage lights"),
+            "per pixel with a surface: view transmittance × the medium's transmittance from the surface point to the light (window lights: to the window plane); filtered pixels average over their surface samples",
+        );
+    } else if scene.output.layers.contains(&LayerKind::SurfaceTransmittancePerLight) {
+        report
+            .plan
+            .left_out("surface_transmittance per light", "the scene has no point, spot or window lights");
+    }
     let light_layer_names = if want_per_light {
-        light_layer_names(&stage_lights.names()[..n_stage])
+        per_light_layer_names("inscatter", &stage_lights.names()[..n_stage])
+    } else {
+        Vec::new()
+    };
+    let surface_layer_names = if want_surface_t {
+        per_light_layer_names("surface_transmittance", &stage_lights.names()[..n_stage])
     } else {
         Vec::new()
     };
@@ -1561,7 +1664,20 @@ fn render_channels<const C: usize>(scene: &Scene, report: &mut Report, progress:
         layers: scene.output.layers.clone(),
         light_inscatter,
         light_layer_names,
+        light_surface_transmittance,
+        surface_layer_names,
     })
+}
+
+/// The `surface_transmittance.<light>` value of a (possibly filtered) sample:
+/// the mean over its surface samples, or the view transmittance where it has none.
+fn surface_transmittance_of(s: &Sample, k: usize) -> [f32; 3] {
+    let v = if s.hit_weight > 1e-12 {
+        s.surface_t[k].map(|v| v / s.hit_weight)
+    } else {
+        s.t
+    };
+    v.map(|x| x.clamp(0.0, 1.0) as f32)
 }
 
 /// A centre sample as stored in the images: (L, T, surface id).
@@ -1631,6 +1747,11 @@ impl RowStats {
 struct Sample {
     /// Per stage light in-scatter, RGB (first [`stage::MAX_LIGHT_LAYERS`] lights).
     lights: [[f64; 3]; stage::MAX_LIGHT_LAYERS],
+    /// Per stage light T_view · T(surface → light) times `hit_weight` (0 without surface).
+    surface_t: [[f64; 3]; stage::MAX_LIGHT_LAYERS],
+    /// 1 where the ray ends on a surface, 0 otherwise; in a filtered sum the
+    /// filter weight of the surface samples.
+    hit_weight: f64,
     stage_segments: u32,
     stage_skipped: u32,
     stage_crossed: u64,
@@ -1705,6 +1826,12 @@ fn filter_pixel(
                         a[c] += wgt * v[c];
                     }
                 }
+                for (a, v) in acc.surface_t.iter_mut().zip(&s.surface_t) {
+                    for c in 0..3 {
+                        a[c] += wgt * v[c];
+                    }
+                }
+                acc.hit_weight += wgt * s.hit_weight;
                 acc.numeric = match (acc.numeric, s.numeric) {
                     (Some(a), Some(b)) => Some(a && b),
                     (a, b) => a.or(b),
