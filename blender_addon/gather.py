@@ -28,9 +28,9 @@ def _unlinked(node: bpy.types.Node, name: str, where: str) -> Any:
     return tuple(v) if hasattr(v, "__len__") else float(v)
 
 
-def _linked_from(sock: bpy.types.NodeSocket) -> bpy.types.Node | None:
+def _linked_from(sock: bpy.types.NodeSocket, include_muted_link: bool = False) -> bpy.types.Node | None:
     for link in sock.links:
-        if link.is_valid and not link.is_muted and not link.from_node.mute:
+        if link.is_valid and (include_muted_link or not link.is_muted) and not link.from_node.mute:
             node = link.from_node
             while node.type == "REROUTE":
                 if not node.inputs[0].is_linked:
@@ -49,6 +49,9 @@ def _active_output(tree: bpy.types.NodeTree, idname: str) -> bpy.types.Node | No
 
 
 # -- world volume --------------------------------------------------------------
+
+#: World custom property set while Tyndall has muted the world's Volume link.
+MUTED_VOLUME_PROP = "tyndall_muted_volume"
 
 
 def _volume_nodes(node: bpy.types.Node, where: str, out: list[bpy.types.Node]) -> None:
@@ -75,7 +78,10 @@ def gather_world_medium(world: bpy.types.World | None) -> list[MediumData]:
     out = _active_output(world.node_tree, "ShaderNodeOutputWorld")
     if out is None:
         return []
-    root = _linked_from(out.inputs["Volume"])
+    # A volume link muted by Tyndall's import (surface render for the composite)
+    # is still the scene's haze.
+    muted_by_tyndall = bool(world.get(MUTED_VOLUME_PROP, False))
+    root = _linked_from(out.inputs["Volume"], include_muted_link=muted_by_tyndall)
     if root is None:
         return []
     nodes: list[bpy.types.Node] = []

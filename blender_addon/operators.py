@@ -24,7 +24,7 @@ from .core import conversions as cv
 from .core import tasks
 from .core.files import Staging
 from .core.jobs import Job, JobState
-from .core.scene_build import BuiltScene, SceneInputError, build_scene
+from .core.scene_build import PER_LIGHT_LAYERS, BuiltScene, SceneInputError, build_scene
 
 # Jobs running from the UI, by operator id (one at a time each); read by the panels.
 RUNNING: dict[str, Job] = {}
@@ -287,8 +287,8 @@ def _export_usd(context: bpy.types.Context, path: str, built: BuiltScene) -> str
             setp(empty, "tyndall:medium:phaseG", float(med["phase"]["g"]))
         if cam is not None:
             setp(cam, "tyndall:output:resolution", list(built.scene["camera"]["resolution"]))
-            # tyndall_usd 0.1 reads the five basic layers only (not inscatter_per_light)
-            basic = [x for x in built.scene["output"]["layers"] if x != "inscatter_per_light"]
+            # tyndall_usd 0.1 reads the five basic layers only (not the per-light ones)
+            basic = [x for x in built.scene["output"]["layers"] if x not in PER_LIGHT_LAYERS]
             setp(cam, "tyndall:output:layers", ",".join(basic))
             setp(cam, "tyndall:output:tolerance", float(built.scene["output"]["tolerance"]))
         res = bpy.ops.wm.usd_export(
@@ -358,6 +358,8 @@ def import_results(context: bpy.types.Context, folder: str, sky: bool = True, vo
         lgs = results.setup_lightgroups(scene, light_layers) if st.use_lightgroups else {}
         results.setup_compositor(scene, exr, light_layers, lgs)
         done.append("compositor")
+        if st.mute_world_volume and results.mute_world_volume(scene):
+            done.append("world volume muted for the surface render")
         if lgs:
             done.append(f"{len(lgs)} light groups")
     sky_exr = os.path.join(folder, tasks.SKY_EXR)

@@ -51,6 +51,7 @@ class VIEW3D_PT_tyndall_volumetrics(_TyndallPanel, bpy.types.Panel):
         layout.prop(st, "threads")
         layout.prop(st, "include_sun")
         layout.prop(st, "use_lightgroups")
+        layout.prop(st, "mute_world_volume")
         layout.prop(st, "apply_results")
         job = RUNNING.get("tyndall.compute_volumetrics")
         if job is not None and not job.poll().finished:

@@ -45,6 +45,14 @@ class TyndallSettings(bpy.types.PropertyGroup):
         description="One Cycles light group per light, so each light's surface contribution can be attenuated",
         default=True,
     )
+    mute_world_volume: BoolProperty(  # type: ignore[valid-type]
+        name="Mute World Volume",
+        description=(
+            "Render surfaces without the world volume (the link is muted, not removed): the compositor adds "
+            "Tyndall's transmittance and in-scatter, so Cycles must not render the haze as well"
+        ),
+        default=True,
+    )
     # sky
     sky_use_sun_lamp: BoolProperty(  # type: ignore[valid-type]
         name="From Sun Lamp", description="Take the sun direction from a sun lamp", default=True

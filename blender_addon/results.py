@@ -8,6 +8,7 @@ from typing import Any
 
 import bpy
 
+from . import gather
 from .core.conversions import layer_safe_name
 
 COMPOSITOR_GROUP = "Tyndall Composite"
@@ -112,15 +113,64 @@ def _mix(tree: bpy.types.NodeTree, blend: str, label: str, loc: tuple[float, flo
     return n
 
 
+def mute_world_volume(scene: bpy.types.Scene) -> bool:
+    """Mute the link into the World Output's Volume input (the surface render of the composite).
+
+    The composite adds Tyndall's in-scatter and transmittance to a render *without*
+    the haze; rendering with the world volume on would count the haze twice. The link
+    is muted, not removed, and the world is marked so that ``gather`` still reads the
+    haze from it and :func:`unmute_world_volume` restores it. Returns whether a link
+    was muted (False: no world volume).
+    """
+    world = scene.world
+    if world is None or world.node_tree is None:
+        return False
+    muted = False
+    for node in world.node_tree.nodes:
+        if node.bl_idname == "ShaderNodeOutputWorld":
+            for link in node.inputs["Volume"].links:
+                link.is_muted = True
+                muted = True
+    if muted:
+        world[gather.MUTED_VOLUME_PROP] = True
+    return muted
+
+
+def unmute_world_volume(scene: bpy.types.Scene) -> bool:
+    """Undo :func:`mute_world_volume` (only links Tyndall muted). Returns whether it did."""
+    world = scene.world
+    if world is None or world.node_tree is None or not world.get(gather.MUTED_VOLUME_PROP, False):
+        return False
+    for node in world.node_tree.nodes:
+        if node.bl_idname == "ShaderNodeOutputWorld":
+            for link in node.inputs["Volume"].links:
+                link.is_muted = False
+    del world[gather.MUTED_VOLUME_PROP]
+    return True
+
+
 def setup_compositor(
     scene: bpy.types.Scene, exr: str, light_layers: dict[str, str], lightgroups: dict[str, str]
 ) -> bpy.types.NodeTree:
-    """``scene.compositing_node_group`` = render × transmittance + inscatter (from the multilayer EXR).
+    """``scene.compositing_node_group``: the surface render seen through Tyndall's haze.
 
-    Per light with a light group (Cycles), an extra group output ``<light>`` =
-    ``Combined_<light group> × transmittance + inscatter.<light>``: the view transmittance
-    stands in for each light's own path transmittance to the surface (an approximation:
-    Tyndall does not output per-light surface transmittance layers yet).
+    Without light groups: ``Image = render × transmittance + inscatter``.
+
+    With one Cycles light group per Tyndall light (``Combined_<group>``) and the
+    ``surface_transmittance.<light>`` layers in the EXR, each light's surface
+    contribution is dimmed by its own path through the haze (light → surface →
+    camera), and what no Tyndall light group holds (other lights, emission, the
+    world) by the view transmittance::
+
+        Image = (render − Σ Combined_gᵢ) × transmittance
+                + Σ Combined_gᵢ × surface_transmittance.ℓᵢ + inscatter
+
+    plus one group output per light, ``Combined_gᵢ × surface_transmittance.ℓᵢ +
+    inscatter.ℓᵢ``. A light whose pass or layer is missing stays in the
+    render × transmittance part. What remains approximate: a pixel's
+    product of filtered layers is not the filtered product (silhouettes; the
+    surface transmittance is averaged over the pixel's surface samples), and
+    the render must be made without the world volume (:func:`mute_world_volume`).
     """
     tree = bpy.data.node_groups.get(COMPOSITOR_GROUP)
     if tree is None or tree.bl_idname != "CompositorNodeTree":
@@ -129,49 +179,58 @@ def setup_compositor(
     tree.interface.clear()
     tree.interface.new_socket("Image", in_out="OUTPUT", socket_type="NodeSocketColor")
     img = _load_image(exr)
+    links = tree.links
+
+    def image_node(layer: str | None, label: str, y: float) -> bpy.types.Node | None:
+        n = tree.nodes.new("CompositorNodeImage")
+        n.image = img
+        n.label = label
+        n.location = (-900, y)
+        if layer is not None:
+            try:
+                n.layer = layer
+            except TypeError:
+                tree.nodes.remove(n)
+                return None
+        return n
+
+    def mix(blend: str, label: str, a: bpy.types.NodeSocket, b: bpy.types.NodeSocket, x: float, y: float) -> Any:
+        m = _mix(tree, blend, label, (x, y))
+        links.new(a, _sock(m.inputs, "A_Color"))
+        links.new(b, _sock(m.inputs, "B_Color"))
+        return _sock(m.outputs, "Result_Color")
 
     rl = tree.nodes.new("CompositorNodeRLayers")
     rl.scene = scene
-    rl.location = (-600, 200)
-    vol = tree.nodes.new("CompositorNodeImage")
-    vol.image = img
-    vol.label = "Tyndall volumetrics"
-    vol.location = (-600, -200)
-    mul = _mix(tree, "MULTIPLY", "× transmittance", (-250, 150))
-    add = _mix(tree, "ADD", "+ inscatter", (0, 150))
+    rl.location = (-900, 400)
+    vol = image_node(None, "Tyndall volumetrics", 0.0)
+    assert vol is not None
     out = tree.nodes.new("NodeGroupOutput")
-    out.location = (300, 150)
-    links = tree.links
-    links.new(rl.outputs["Image"], _sock(mul.inputs, "A_Color"))
-    links.new(vol.outputs["transmittance"], _sock(mul.inputs, "B_Color"))
-    links.new(_sock(mul.outputs, "Result_Color"), _sock(add.inputs, "A_Color"))
-    links.new(vol.outputs["inscatter"], _sock(add.inputs, "B_Color"))
-    links.new(_sock(add.outputs, "Result_Color"), out.inputs["Image"])
+    out.location = (900, 150)
 
-    if lightgroups:
-        per = tree.nodes.new("CompositorNodeImage")
-        per.image = img
-        per.label = "Tyndall per-light inscatter"
-        per.location = (-600, -600)
-        try:
-            per.layer = "inscatter"
-        except TypeError:
-            per = None
-        y = -350.0
-        for obj_name, lg in lightgroups.items():
-            pass_name = light_layers[obj_name].removeprefix("inscatter.")
-            src = rl.outputs.get(f"Combined_{lg}")
-            if src is None or per is None or per.outputs.get(pass_name) is None:
-                continue
-            m = _mix(tree, "MULTIPLY", f"{obj_name} × T (approx.)", (-250, y))
-            a = _mix(tree, "ADD", f"+ inscatter.{pass_name}", (0, y))
+    per = image_node("inscatter", "Tyndall per-light inscatter", -400.0) if lightgroups else None
+    surf = image_node("surface_transmittance", "Tyndall surface transmittance", -800.0) if lightgroups else None
+    rest = rl.outputs["Image"]
+    through_haze = None
+    y = -300.0
+    for obj_name, lg in lightgroups.items():
+        pass_name = light_layers[obj_name].removeprefix("inscatter.")
+        src = rl.outputs.get(f"Combined_{lg}")
+        if src is None or surf is None or surf.outputs.get(pass_name) is None:
+            continue
+        lit = mix("MULTIPLY", f"{obj_name} × its surface transmittance", src, surf.outputs[pass_name], -500, y)
+        rest = mix("SUBTRACT", f"− {obj_name}", rest, src, -500, y + 120)
+        through_haze = lit if through_haze is None else mix("ADD", f"+ {obj_name}", through_haze, lit, -200, y)
+        if per is not None and per.outputs.get(pass_name) is not None:
             tree.interface.new_socket(obj_name, in_out="OUTPUT", socket_type="NodeSocketColor")
-            links.new(src, _sock(m.inputs, "A_Color"))
-            links.new(vol.outputs["transmittance"], _sock(m.inputs, "B_Color"))
-            links.new(_sock(m.outputs, "Result_Color"), _sock(a.inputs, "A_Color"))
-            links.new(per.outputs[pass_name], _sock(a.inputs, "B_Color"))
-            links.new(_sock(a.outputs, "Result_Color"), out.inputs[obj_name])
-            y -= 250.0
+            own = mix("ADD", f"+ inscatter.{pass_name}", lit, per.outputs[pass_name], 300, y)
+            links.new(own, out.inputs[obj_name])
+        y -= 300.0
+    image = mix("MULTIPLY", "× transmittance", rest, vol.outputs["transmittance"], -200, 300)
+    if through_haze is not None:
+        image = mix("ADD", "+ lights through the haze", image, through_haze, 100, 300)
+    image = mix("ADD", "+ inscatter", image, vol.outputs["inscatter"], 400, 300)
+    links.new(image, out.inputs["Image"])
     scene.compositing_node_group = tree
     scene.render.use_compositing = True
     return tree

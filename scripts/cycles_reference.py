@@ -533,8 +533,12 @@ def write_exr_rgb(path, img, half=False, extra_header=None):
     os.replace(tmp, path)
 
 
-def build_scene(scene, base_dir):
-    """Build the bpy scene for a (validated) Tyndall scene dict."""
+def build_scene(scene, base_dir, albedo=None):
+    """Build the bpy scene for a (validated) Tyndall scene dict.
+
+    ``albedo`` (grey, 0..1): give every mesh a diffuse surface of that albedo
+    instead of the black one (the composite check: surfaces lit through the haze).
+    """
     check_scene(scene)
     reset_blender()
     cam = scene["camera"]
@@ -551,10 +555,10 @@ def build_scene(scene, base_dir):
         clip_start=cam.get("clip_start_m", 0.0),
         clip_end=cam.get("clip_end_m"),
     )
-    black = black_material()
+    surface = black_material() if albedo is None else diffuse_material((float(albedo),) * 3)
     for i, m in enumerate(scene.get("meshes", [])):
         add_mesh(
-            m.get("name") or f"mesh{i}", m["positions"], m["triangles"], transform_matrix(m.get("transform")), black
+            m.get("name") or f"mesh{i}", m["positions"], m["triangles"], transform_matrix(m.get("transform")), surface
         )
     for i, l in enumerate(scene.get("lights", [])):
         rotl = orientation_matrix(l.get("orientation", {"quaternion_wxyz": [1, 0, 0, 0]}), l["position"])
@@ -607,13 +611,19 @@ def main(argv=None):
     )
     ap.add_argument("--float16", action="store_true", help="store the EXR as half floats")
     ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument(
+        "--albedo",
+        type=float,
+        default=None,
+        help="diffuse grey surfaces of this albedo instead of black ones (full render: surfaces + haze)",
+    )
     args = ap.parse_args(argv)
 
     with open(args.scene) as f:
         scene = json.load(f)
     base_dir = os.path.dirname(os.path.abspath(args.scene))
     try:
-        res, ftype, fw = build_scene(scene, base_dir)
+        res, ftype, fw = build_scene(scene, base_dir, albedo=args.albedo)
     except Unsupported as e:
         print(f"cycles_reference: error: {args.scene}: {e}", file=sys.stderr)
         return 2
@@ -622,6 +632,7 @@ def main(argv=None):
         "samples": args.samples,
         "seed": args.seed,
         "resolution": list(res),
+        "albedo": args.albedo,
         "blender": _bpy().app.version_string,
         "settings": {
             "device": "CPU",

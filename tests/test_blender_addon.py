@@ -273,12 +273,25 @@ def test_export_compute_import(addon: None, tmp_path: Path) -> None:
     assert bpy.ops.tyndall.compute_volumetrics("EXEC_DEFAULT", directory=str(out)) == {"FINISHED"}
     assert listing(out) == ["report.json", "scene.json", "stage.usda", "volumetrics.exr"]
     ch = exr_channels(str(out / "volumetrics.exr"))
-    for layer in ("inscatter", "transmittance", "error", "inscatter.Spot_001"):
+    for layer in ("inscatter", "transmittance", "error", "inscatter.Spot_001", "surface_transmittance.Spot_001"):
         assert ch[layer].shape == (36, 64, 3), layer
     assert ch["depth.Z"].shape == (36, 64)
     assert ch["inscatter"].max() > 0 and 0 < ch["transmittance"].min() <= ch["transmittance"].max() <= 1
     assert abs(ch["inscatter"] - ch["inscatter.Spot_001"]).max() <= 1e-6 * ch["inscatter"].max()
     assert (ch["depth.Z"] < 1e9).sum() > 0  # the cube is seen
+    # A surface is seen through the haze twice (light → surface → camera): dimmer than the view alone.
+    surf = ch["depth.Z"] < 1e9
+    st = ch["surface_transmittance.Spot_001"]
+    assert (st[surf] < ch["transmittance"][surf]).all() and (st[surf] > 0).all()
+    # Without a surface within the filter's reach (±2 px): the view transmittance.
+    import numpy as np
+
+    pad = np.pad(surf, 2)
+    near = np.zeros_like(surf)
+    for dy in range(5):
+        for dx in range(5):
+            near |= pad[dy : dy + surf.shape[0], dx : dx + surf.shape[1]]
+    assert (~near).sum() > 100 and (st[~near] == ch["transmittance"][~near]).all()
     report = json.loads((out / "report.json").read_text())
     assert report["resolution"] == [64, 36]
     assert report["blender"]["light_layers"] == {"Spot.001": "inscatter.Spot_001"}
@@ -289,21 +302,42 @@ def test_export_compute_import(addon: None, tmp_path: Path) -> None:
     tree = sc.compositing_node_group
     assert tree is not None and tree.name == "Tyndall Composite"
     kinds = sorted(n.bl_idname for n in tree.nodes)
-    assert kinds.count("CompositorNodeImage") == 2 and "CompositorNodeRLayers" in kinds
+    assert kinds.count("CompositorNodeImage") == 3 and "CompositorNodeRLayers" in kinds
     outs = [s.name for s in tree.interface.items_tree if s.item_type == "SOCKET" and s.in_out == "OUTPUT"]
     assert outs == ["Image", "Spot.001"]
+    # Image = (render − Combined_g) × transmittance + Combined_g × surface_transmittance.Spot_001 + inscatter
     out_node = next(n for n in tree.nodes if n.bl_idname == "NodeGroupOutput")
+
+    def inputs_of(node: Any) -> list[tuple[Any, str]]:
+        return [(lk.from_node, lk.from_socket.name) for s in node.inputs if s.enabled for lk in s.links]
+
     add = out_node.inputs["Image"].links[0].from_node
     assert add.blend_type == "ADD"
-    srcs = {lk.from_socket.name for s in add.inputs if s.enabled for lk in s.links}
-    assert "inscatter" in srcs
-    mul = next(
-        lk.from_node for s in add.inputs if s.enabled for lk in s.links if lk.from_node.bl_idname == "ShaderNodeMix"
-    )
-    assert mul.blend_type == "MULTIPLY"
-    assert {lk.from_socket.name for s in mul.inputs if s.enabled for lk in s.links} == {"Image", "transmittance"}
+    (add2, _), (_, last) = inputs_of(add)
+    assert last == "inscatter" and add2.blend_type == "ADD"
+    (mul, _), (lit, _) = inputs_of(add2)
+    assert mul.blend_type == "MULTIPLY" and lit.blend_type == "MULTIPLY"
+    (sub, _), (_, t_name) = inputs_of(mul)
+    assert t_name == "transmittance" and sub.blend_type == "SUBTRACT"
+    assert [name for _, name in inputs_of(sub)] == ["Image", "Combined_tyndall_Spot_001"]
+    assert [name for _, name in inputs_of(lit)] == ["Combined_tyndall_Spot_001", "Spot_001"]
+    surf_node = inputs_of(lit)[1][0]
+    assert surf_node.bl_idname == "CompositorNodeImage" and surf_node.layer == "surface_transmittance"
     img = next(n for n in tree.nodes if n.bl_idname == "CompositorNodeImage").image
     assert os.path.samefile(bpy.path.abspath(img.filepath), out / "volumetrics.exr")
+    # The surface render must be made without the haze: the world's Volume link is muted, and
+    # the scene still exports with its medium.
+    vol_links = [
+        lk
+        for n in objs["world"].node_tree.nodes
+        if n.bl_idname == "ShaderNodeOutputWorld"
+        for lk in n.inputs["Volume"].links
+    ]
+    assert vol_links and all(lk.is_muted for lk in vol_links)
+    assert bpy.ops.tyndall.export_stage("EXEC_DEFAULT", directory=str(tmp_path / "again")) == {"FINISHED"}
+    assert json.loads((tmp_path / "again" / "scene.json").read_text())["media"][0]["scattering"] == pytest.approx(
+        [0.025, 0.03, 0.04]
+    )
 
     # import_results on a fresh scene rebuilds the same
     sc.compositing_node_group = None
@@ -336,6 +370,57 @@ def test_generate_sky_sets_world_and_sun(addon: None, tmp_path: Path) -> None:
     assert out_node.inputs["Volume"].is_linked  # the fog stays
     ch = exr_channels(str(out / "sky.exr"))
     assert sorted(ch) == ["B", "G", "R"] or "RGB" in ch or len(ch) >= 1
+
+
+def test_sky_texture_orientation_matches_sun_lamp_in_cycles(addon: None, tmp_path: Path) -> None:
+    """Issue 4, world texture orientation: the sky written by Tyndall, applied by the add-on as
+    the World's Environment Texture, is rendered by Cycles with a camera looking along the sun
+    lamp's direction (the lamp's +Z axis, set by the add-on from the same model): the sun disc
+    must be at the image centre. A texture flipped in rows or columns, or turned about the
+    zenith, would put it elsewhere (elevation −25°, or another azimuth); the camera turned away
+    by 180° in azimuth sees no sun."""
+    import numpy as np
+
+    sc = bpy.context.scene
+    sun = bpy.data.objects.new("Sun", bpy.data.lights.new("Sun", "SUN"))
+    sc.collection.objects.link(sun)
+    # Elevation 25°, azimuth not on a symmetry axis of the image.
+    sun.rotation_euler = (math.radians(65.0), 0.0, math.radians(37.0))
+    sc.tyndall.sky_width = 512
+    sc.tyndall.sky_sun_disc = True
+    out = tmp_path / "sky"
+    assert bpy.ops.tyndall.generate_sky("EXEC_DEFAULT", directory=str(out)) == {"FINISHED"}
+    to_sun = [sun.matrix_world[r][2] for r in range(3)]
+    assert math.degrees(math.asin(to_sun[2])) == pytest.approx(25.0, abs=1e-4)
+    sun.hide_render = True  # only the world texture is seen
+    cam = bpy.data.objects.new("Cam", bpy.data.cameras.new("Cam"))
+    sc.collection.objects.link(cam)
+    sc.camera = cam
+    cam.data.lens, cam.data.sensor_width, cam.data.sensor_fit = 100.0, 36.0, "HORIZONTAL"  # 20.4° across 32 px
+
+    def render_towards(direction: list[float]) -> Any:
+        import mathutils
+
+        cam.rotation_mode = "QUATERNION"
+        cam.rotation_quaternion = mathutils.Vector(direction).to_track_quat("-Z", "Y")
+        sc.render.engine = "CYCLES"
+        sc.cycles.samples, sc.cycles.use_denoising, sc.cycles.use_adaptive_sampling = 4, False, False
+        sc.render.resolution_x = sc.render.resolution_y = 32
+        sc.render.resolution_percentage = 100
+        sc.render.image_settings.file_format = "OPEN_EXR"
+        sc.render.filepath = str(tmp_path / "view.exr")
+        bpy.ops.render.render(write_still=True)
+        ch = exr_channels(str(tmp_path / "view.exr"))
+        rgb = ch["RGB"] if "RGB" in ch else ch["RGBA"] if "RGBA" in ch else np.stack([ch[c] for c in "RGB"], -1)
+        return np.asarray(rgb, dtype="float64")[..., :3].sum(axis=-1)
+
+    img = render_towards(to_sun)
+    j, i = np.unravel_index(int(np.argmax(img)), img.shape)
+    print(f"sun disc at pixel ({i}, {j}) of 32 × 32; peak / median {img.max() / np.median(img):.3g}")
+    assert abs(i - 15.5) <= 1.5 and abs(j - 15.5) <= 1.5
+    assert img.max() > 50 * np.median(img)
+    away = render_towards([-to_sun[0], -to_sun[1], to_sun[2]])
+    assert away.max() < 2 * np.median(img)
 
 
 def test_ies_internal_text_and_file(addon: None, tmp_path: Path) -> None:
@@ -548,3 +633,56 @@ def test_addon_volumetrics_match_converged_cycles(tmp_path: Path, name: str) -> 
     rmse = float(np.sqrt(np.mean((got - ref) ** 2)) / np.sqrt(np.mean(ref**2)))
     print(f"{name} through the add-on: relative RMSE {rmse:.4%}")
     assert rmse <= 0.01
+
+
+# Surface render of the composite: direct light on diffuse surfaces converges with
+# anti-aliasing only (no volume in it), so a few hundred samples suffice.
+COMPOSITE_SURFACE_SAMPLES = 256
+
+
+def test_composite_matches_cycles_volumetric_render(tmp_path: Path) -> None:
+    """Issue 5, fidelity of the full composite: two coloured spots, a box occluder,
+    diffuse grey floor, wall and box, world Volume Scatter + Absorption. The add-on
+    computes the volumetrics, sets up one light group per spot and the compositor,
+    and mutes the world volume; Cycles renders the surfaces (no haze) through that
+    compositor. The composite ``(render − Σ gᵢ)·T + Σ gᵢ·T_surfᵢ + L`` must equal
+    the converged Cycles render of the same scene *with* the haze (stored,
+    ``tests/data/cycles/composite_stage.exr``) within 3 % relative RMSE. The
+    composite with the view transmittance alone is rendered too, for contrast."""
+    import numpy as np
+
+    data = REPO / "tests" / "data" / "cycles"
+    ref_mod = _cycles_reference_module()
+    scene = json.loads((data / "composite_stage.json").read_text())
+    entry = json.loads((data / "manifest.json").read_text())["references"]["composite_stage"]
+    resolution, ftype, fwidth = ref_mod.build_scene(scene, str(data), albedo=entry["albedo"])
+    ref_mod.configure_render(resolution, COMPOSITE_SURFACE_SAMPLES, filter_type=ftype, filter_width=fwidth)
+    sc = bpy.context.scene
+    blender_addon.register()
+    try:
+        out = tmp_path / "out"
+        assert bpy.ops.tyndall.compute_volumetrics("EXEC_DEFAULT", directory=str(out)) == {"FINISHED"}
+        assert sc.render.use_compositing and sc.compositing_node_group.name == "Tyndall Composite"
+        assert {o.lightgroup for o in sc.objects if o.type == "LIGHT"} == {"tyndall_warm", "tyndall_cool"}
+        composite, secs = ref_mod.render_to_array(str(tmp_path / "composite.exr"))
+        # For contrast: every light dimmed by the view transmittance only.
+        report = json.loads((out / "report.json").read_text())
+        from blender_addon import results
+
+        results.setup_compositor(sc, str(out / "volumetrics.exr"), report["blender"]["light_layers"], {})
+        view_only, _ = ref_mod.render_to_array(str(tmp_path / "view_only.exr"))
+    finally:
+        blender_addon.unregister()
+    ref = ref_mod.read_exr_rgb(str(data / "composite_stage.exr")).astype("float64")
+
+    def rel_rmse(img: Any) -> float:
+        return float(np.sqrt(np.mean((img.astype("float64") - ref) ** 2)) / np.sqrt(np.mean(ref**2)))
+
+    err, err_view = rel_rmse(composite), rel_rmse(view_only)
+    print(
+        f"composite vs converged Cycles with haze: relative RMSE {err:.3%} "
+        f"(view transmittance only: {err_view:.3%}); surface render {secs:.2f} s at {COMPOSITE_SURFACE_SAMPLES} spp"
+    )
+    assert np.isfinite(composite).all()
+    assert err <= 0.03
+    assert err_view > 2 * err  # the per-light transmittance matters in this scene

@@ -14,7 +14,16 @@ from typing import Any
 
 from . import conversions as cv
 
-DEFAULT_LAYERS: tuple[str, ...] = ("inscatter", "transmittance", "depth", "error", "inscatter_per_light")
+DEFAULT_LAYERS: tuple[str, ...] = (
+    "inscatter",
+    "transmittance",
+    "depth",
+    "error",
+    "inscatter_per_light",
+    "surface_transmittance_per_light",
+)
+#: Layers written once per light.
+PER_LIGHT_LAYERS: tuple[str, ...] = ("inscatter_per_light", "surface_transmittance_per_light")
 MAX_PER_LIGHT_LAYERS = 16  # core/src/render/stage.rs MAX_LIGHT_LAYERS
 
 
@@ -307,8 +316,8 @@ def build_scene(data: SceneData) -> BuiltScene:
 
     layers = list(data.layers)
     n_stage = sum(1 for lt in lights if lt["type"] in ("point", "spot"))
-    if "inscatter_per_light" in layers and n_stage > MAX_PER_LIGHT_LAYERS:
-        layers.remove("inscatter_per_light")
+    if any(x in layers for x in PER_LIGHT_LAYERS) and n_stage > MAX_PER_LIGHT_LAYERS:
+        layers = [x for x in layers if x not in PER_LIGHT_LAYERS]
         notes.append(f"{n_stage} lights: more than {MAX_PER_LIGHT_LAYERS}, no per-light layers")
     output: dict[str, Any] = {
         "layers": layers,
