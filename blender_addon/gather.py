@@ -170,6 +170,21 @@ def _light_nodes(obj: bpy.types.Object, light: bpy.types.Light) -> tuple[IesData
     return ies, 1.0, color
 
 
+def _ies_property(obj: bpy.types.Object, light: bpy.types.Light) -> IesData | None:
+    """``tyndall:ies:file`` / ``strength`` on the light data: the IES profile of a light that came
+    from a USD stage (Blender's importer keeps the attribute as a custom property, not as a node)."""
+    path = light.get("tyndall:ies:file")
+    if not path:
+        return None
+    strength = light.get("tyndall:ies:strength", 1.0)
+    return IesData(
+        node=f"{obj.name} custom property tyndall:ies:file",
+        mode="EXTERNAL",
+        filepath=bpy.path.abspath(str(path)),
+        strength=float(strength),
+    )
+
+
 def gather_lights(scene: bpy.types.Scene) -> list[LightData]:
     """Every render-visible light object of ``scene``."""
     out = []
@@ -183,6 +198,8 @@ def gather_lights(scene: bpy.types.Scene) -> list[LightData]:
         ies, k, node_color = (None, 1.0, (1.0, 1.0, 1.0))
         if light.type in ("POINT", "SPOT"):
             ies, k, node_color = _light_nodes(obj, light)
+            if ies is None:
+                ies = _ies_property(obj, light)
         color = tuple(c * n for c, n in zip(color, node_color[:3], strict=True))
         out.append(
             LightData(

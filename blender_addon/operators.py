@@ -262,8 +262,9 @@ class TYNDALL_OT_generate_sky(_JobOperator, bpy.types.Operator):
 def _export_usd(context: bpy.types.Context, path: str, built: BuiltScene) -> str:
     """Blender's own USD exporter, with the medium and output as ``tyndall:`` custom properties.
 
-    A temporary Empty carries ``tyndall:medium:*`` (tyndall_usd reads it as the medium) and the
-    camera ``tyndall:output:*``; both are removed again. Returns "" or the reason it failed.
+    A temporary Empty carries ``tyndall:medium:*`` (tyndall_usd reads it as the medium), the
+    camera ``tyndall:output:*`` and each IES light's data ``tyndall:ies:file``/``strength``; all
+    are removed again. Returns "" or the reason it failed.
     """
     if not hasattr(bpy.ops.wm, "usd_export"):
         return "this Blender has no USD exporter"
@@ -285,6 +286,14 @@ def _export_usd(context: bpy.types.Context, path: str, built: BuiltScene) -> str
         setp(empty, "tyndall:medium:phase", med["phase"]["type"])
         if "g" in med["phase"]:
             setp(empty, "tyndall:medium:phaseG", float(med["phase"]["g"]))
+        # Blender's exporter writes no IES shaping: the profile goes on the light data (exported
+        # onto the SphereLight prim), where tyndall_usd reads it.
+        by_scene_name = {v: k for k, v in built.light_names.items()}
+        for lt in built.scene["lights"]:
+            obj = scene.objects.get(by_scene_name.get(lt.get("name", ""), ""))
+            if "ies" in lt and obj is not None and obj.type == "LIGHT":
+                setp(obj.data, "tyndall:ies:file", lt["ies"]["file"])
+                setp(obj.data, "tyndall:ies:strength", float(lt["ies"]["strength"]))
         if cam is not None:
             setp(cam, "tyndall:output:resolution", list(built.scene["camera"]["resolution"]))
             # tyndall_usd 0.1 reads the five basic layers only (not the per-light ones)

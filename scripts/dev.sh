@@ -47,6 +47,7 @@ rm -rf dist/wheels
 "$BPY" -m pip install --quiet --force-reinstall --no-deps dist/wheels/tyndall-*.whl
 "$BPY" scripts/build_extension.py --wheel dist/wheels/tyndall-*.whl
 export TYNDALL_BPY_PYTHON="$PWD/$BPY"
+export TYNDALL_USD_PYTHON="$PWD/$VPY"  # usd-core for the add-on's USD round trip (bpy has its own USD)
 echo "== pytest"
 .venv/bin/python -m pytest -q ${PYTEST_ARGS:-}
 echo "== pytest with bpy (Blender extension)"

@@ -29,6 +29,7 @@ REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 
 import blender_addon  # noqa: E402
+from blender_addon import gather  # noqa: E402
 from blender_addon.core import conversions as cv  # noqa: E402
 from blender_addon.core.files import Staging, atomic_write_json  # noqa: E402
 from blender_addon.core.jobs import Job, JobState, JobStateError  # noqa: E402
@@ -421,6 +422,108 @@ def test_sky_texture_orientation_matches_sun_lamp_in_cycles(addon: None, tmp_pat
     assert img.max() > 50 * np.median(img)
     away = render_towards([-to_sun[0], -to_sun[1], to_sun[2]])
     assert away.max() < 2 * np.median(img)
+
+
+def _usd_python() -> str:
+    """A Python with tyndall_usd + usd-core (bpy bundles its own USD, so not this one)."""
+    exe = os.environ.get("TYNDALL_USD_PYTHON") or str(REPO / ".venv" / "bin" / "python")
+    try:
+        ok = subprocess.run([exe, "-c", "import tyndall_usd"], capture_output=True, timeout=120).returncode == 0
+    except (OSError, subprocess.TimeoutExpired):
+        ok = False
+    if not ok:
+        pytest.skip(f"no tyndall_usd in {exe} (set TYNDALL_USD_PYTHON)")
+    return exe
+
+
+_USD_LEG = """
+import json, sys
+from tyndall_usd import convert_stage, write_stage
+conv = convert_stage(sys.argv[1])
+notes = write_stage(conv.scene, sys.argv[2])
+json.dump({"scene": conv.scene, "skipped": conv.skipped, "notes": notes}, open(sys.argv[3], "w"))
+"""
+
+
+def test_round_trip_through_usd_keeps_every_light_type(addon: None, tmp_path: Path) -> None:
+    """Issue 5, round trip: a Blender scene (spot with an IES file, point, sun, camera) → the
+    add-on's stage.usda (Blender's exporter + tyndall: properties) → Scene (tyndall_usd) → USD
+    (tyndall_usd.write_stage) → Blender (Blender's importer) → the add-on's gather: lights, cones,
+    blends, IES path and strength, colours, powers, transforms and camera within float tolerance."""
+    usd_py = _usd_python()
+    objs = make_scene()
+    sc = bpy.context.scene
+    ies_path = tmp_path / "profile.ies"
+    ies_path.write_text(IES_TEXT)
+    spot = objs["spot"].data
+    spot.use_nodes = True
+    nt = spot.node_tree
+    ies = nt.nodes.new("ShaderNodeTexIES")
+    ies.mode, ies.filepath = "EXTERNAL", str(ies_path)
+    ies.inputs["Strength"].default_value = 1.7
+    em = next(n for n in nt.nodes if n.bl_idname == "ShaderNodeEmission")
+    nt.links.new(ies.outputs["Fac"], em.inputs["Strength"])
+    point = bpy.data.objects.new("Fill", bpy.data.lights.new("Fill", "POINT"))
+    sc.collection.objects.link(point)
+    point.location, point.data.energy, point.data.color = (2.0, -1.0, 3.0), 150.0, (0.3, 0.6, 1.0)
+    point.data.shadow_soft_size = 0.1
+    sun = bpy.data.objects.new("Sun", bpy.data.lights.new("Sun", "SUN"))
+    sc.collection.objects.link(sun)
+    sun.rotation_euler, sun.data.energy, sun.data.angle = (0.6, 0.1, 0.9), 4.0, math.radians(1.2)
+    bpy.context.view_layer.update()  # matrix_world of the new objects
+    before = {x.name: x for x in gather.gather_lights(sc)}
+    cam_before = [x for r in objs["camera"].matrix_world for x in r]
+    lens_before = objs["camera"].data.lens
+
+    out = tmp_path / "shot"
+    assert bpy.ops.tyndall.export_stage("EXEC_DEFAULT", directory=str(out)) == {"FINISHED"}
+    assert "tyndall:ies:file" not in spot  # the temporary properties are gone again
+    (tmp_path / "leg.py").write_text(_USD_LEG)
+    r = subprocess.run(
+        [
+            usd_py,
+            str(tmp_path / "leg.py"),
+            str(out / "stage.usda"),
+            str(tmp_path / "rt.usda"),
+            str(tmp_path / "c.json"),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert r.returncode == 0, r.stderr[-3000:]
+    leg = json.loads((tmp_path / "c.json").read_text())
+    assert leg["notes"] == []
+    ies_lights = [x for x in leg["scene"]["lights"] if "ies" in x]
+    assert len(ies_lights) == 1 and os.path.samefile(ies_lights[0]["ies"]["file"], ies_path)
+    assert ies_lights[0]["ies"]["strength"] == pytest.approx(1.7)
+
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    bpy.ops.wm.usd_import(filepath=str(tmp_path / "rt.usda"), property_import_mode="ALL")
+    sc = bpy.context.scene
+    # One light of each type: matched by type (Blender's importer renames "Spot_001" to "Spot").
+    after = {x.kind: x for x in gather.gather_lights(sc)}
+    assert sorted(after) == ["POINT", "SPOT", "SUN"]
+    for name in ("Spot.001", "Fill", "Sun"):
+        b = before[name]
+        a = after[b.kind]
+        assert a.kind == b.kind, name
+        assert a.energy == pytest.approx(b.energy, rel=1e-5) and a.color == pytest.approx(b.color, rel=1e-6)
+        if b.kind == "SUN":
+            assert [r[2] for r in a.matrix[:3]] == pytest.approx([r[2] for r in b.matrix[:3]], abs=1e-6)
+            assert a.sun_angle == pytest.approx(b.sun_angle, rel=1e-5)
+            continue
+        assert [x for r in a.matrix for x in r] == pytest.approx([x for r in b.matrix for x in r], abs=1e-5), name
+        assert a.radius == pytest.approx(b.radius, rel=1e-5, abs=1e-7)
+        if b.kind == "SPOT":
+            assert a.spot_size == pytest.approx(b.spot_size, rel=1e-5)
+            assert a.spot_blend == pytest.approx(b.spot_blend, rel=1e-5)
+        assert (a.ies is None) == (b.ies is None), name
+        if b.ies is not None:
+            assert os.path.samefile(a.ies.filepath, b.ies.filepath) and a.ies.strength == pytest.approx(1.7)
+    cam = next(o for o in sc.objects if o.type == "CAMERA")
+    assert [x for r in cam.matrix_world for x in r] == pytest.approx(cam_before, abs=1e-5)
+    assert cam.data.lens == pytest.approx(lens_before, rel=1e-5)
 
 
 def test_ies_internal_text_and_file(addon: None, tmp_path: Path) -> None:

@@ -9,12 +9,14 @@
 DistantLight, DomeLight, Mesh, Camera, xform ops, metersPerUnit, upAxis) plus the
 documented ``tyndall:*`` attributes (medium, IES strength, sky, output settings; see
 usd/README.md). ``write_results_layer`` writes the sky DomeLight, the sun DistantLight
-and the result images back as a USD layer.
+and the result images back as a USD layer; ``write_stage`` writes a scene as a USD stage
+in Blender's conventions (the inverse of ``convert_stage``).
 """
 
 from __future__ import annotations
 
 from .reader import Conversion, SkySettings, UsdSceneError, convert_stage, open_stage
+from .stage_writer import write_stage
 from .writer import RESULT_ASSETS, read_results_layer, write_results_layer
 
 __version__ = "0.1.0"
@@ -29,4 +31,5 @@ __all__ = [
     "open_stage",
     "read_results_layer",
     "write_results_layer",
+    "write_stage",
 ]

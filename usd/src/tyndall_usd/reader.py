@@ -354,10 +354,10 @@ class _Converter:
         path = str(prim.GetPath())
         attr = prim.GetAttribute("inputs:shaping:ies:file")
         if not attr or not attr.HasAuthoredValue():
-            return None
+            return self.ies_from_custom_property(prim)
         asset = attr.Get(self.time)
         if asset is None or not asset.path:
-            return None
+            return self.ies_from_custom_property(prim)
         scale = _float(prim, "inputs:shaping:ies:angleScale", self.time, 0.0)
         if scale != 0.0:
             self.skip(prim, f"unsupported shaping: inputs:shaping:ies:angleScale = {scale:g} (only 0 is supported)")
@@ -371,6 +371,24 @@ class _Converter:
         if strength < 0.0:
             raise UsdSceneError(path, NS + "ies:strength", f"must be ≥ 0, got {strength}")
         return {"file": os.path.abspath(resolved), "strength": strength}
+
+    def ies_from_custom_property(self, prim: Usd.Prim) -> dict[str, Any] | None:
+        """``tyndall:ies:file`` (string; relative to the layer): Blender's exporter writes no IES
+        shaping, so the add-on sets this custom property on the light data, which Blender
+        exports on the SphereLight prim (and its importer brings back)."""
+        path = str(prim.GetPath())
+        name = _text(prim, NS + "ies:file", self.time, "")
+        if not name:
+            return None
+        layer = prim.GetStage().GetRootLayer()
+        base = os.path.dirname(layer.realPath) if layer.realPath else os.getcwd()
+        file = name if os.path.isabs(name) else os.path.join(base, name)
+        if not os.path.isfile(file):
+            raise UsdSceneError(path, NS + "ies:file", f"IES file {name!r} not found (resolved to {file})")
+        strength = _float(prim, NS + "ies:strength", self.time, 1.0)
+        if strength < 0.0:
+            raise UsdSceneError(path, NS + "ies:strength", f"must be ≥ 0, got {strength}")
+        return {"file": os.path.abspath(file), "strength": strength}
 
     def distant_light(self, prim: Usd.Prim) -> dict[str, Any]:
         path = str(prim.GetPath())
