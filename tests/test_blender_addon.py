@@ -494,6 +494,24 @@ def test_round_trip_through_usd_keeps_every_light_type(addon: None, tmp_path: Pa
     assert r.returncode == 0, r.stderr[-3000:]
     leg = json.loads((tmp_path / "c.json").read_text())
     assert leg["notes"] == []
+    # The stage carries the same lights, camera and medium as the add-on's scene.json.
+    direct = json.loads((out / "scene.json").read_text())
+    from_usd = {x["name"]: x for x in leg["scene"]["lights"]}
+    for lt in direct["lights"]:
+        u = from_usd[lt["name"]]
+        for k, v in lt.items():
+            if k == "ies":
+                assert os.path.samefile(u["ies"]["file"], v["file"]) and u["ies"]["strength"] == pytest.approx(1.7)
+            elif isinstance(v, (int, float)):
+                assert u[k] == pytest.approx(v, rel=1e-5, abs=1e-7), (lt["name"], k)
+            elif k in ("color", "position", "direction_to_sun"):
+                assert u[k] == pytest.approx(v, rel=1e-5, abs=1e-7), (lt["name"], k)
+    cam_u, cam_d = leg["scene"]["camera"], direct["camera"]
+    for k in ("focal_length_mm", "shift_x", "shift_y", "clip_start_m"):
+        assert cam_u[k] == pytest.approx(cam_d[k], rel=1e-5, abs=1e-7), k
+    assert cam_u["resolution"] == cam_d["resolution"] and cam_u["position"] == pytest.approx(cam_d["position"])
+    med_u, med_d = leg["scene"]["media"][0], direct["media"][0]
+    assert med_u["scattering"] == pytest.approx(med_d["scattering"]) and med_u["phase"] == med_d["phase"]
     ies_lights = [x for x in leg["scene"]["lights"] if "ies" in x]
     assert len(ies_lights) == 1 and os.path.samefile(ies_lights[0]["ies"]["file"], ies_path)
     assert ies_lights[0]["ies"]["strength"] == pytest.approx(1.7)

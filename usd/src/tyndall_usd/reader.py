@@ -258,6 +258,19 @@ class _Converter:
 
     # -- lights
 
+    def object_name(self, prim: Usd.Prim) -> str:
+        """The Blender object's name for a light Blender exported as an object Xform holding
+        the light data prim (named after the data); the prim's own name otherwise."""
+        parent = prim.GetParent()
+        if (
+            _authored(prim, "userProperties:blender:data_name")
+            and parent
+            and _authored(parent, "userProperties:blender:object_name")
+            and len(parent.GetChildren()) == 1
+        ):
+            return parent.GetName()
+        return prim.GetName()
+
     def light_color(self, prim: Usd.Prim) -> list[float]:
         path = str(prim.GetPath())
         color = _vec(prim, "inputs:color", self.time, 3, (1.0, 1.0, 1.0))
@@ -303,7 +316,7 @@ class _Converter:
             self.notes.append(f"{path}: inputs:normalize is off: power multiplied by the sphere area 4πr²")
         pos = m.ExtractTranslation()
         light: dict[str, Any] = {
-            "name": prim.GetName(),
+            "name": self.object_name(prim),
             "position": [float(pos[0]), float(pos[1]), float(pos[2])],
             "orientation": {"quaternion_wxyz": _geom.frame_quaternion(m)},
             "color": self.light_color(prim),
@@ -399,7 +412,7 @@ class _Converter:
             raise UsdSceneError(path, "inputs:angle", f"must be in 0..=90 degrees, got {angle}")
         return {
             "type": "sun",
-            "name": prim.GetName(),
+            "name": self.object_name(prim),
             "direction_to_sun": [float(to_sun[0]), float(to_sun[1]), float(to_sun[2])],
             "color": self.light_color(prim),
             "strength_w_m2": self.intensity_and_exposure(prim) * 4.0,
@@ -417,7 +430,7 @@ class _Converter:
             return None
         return {
             "type": "ambient",
-            "name": prim.GetName(),
+            "name": self.object_name(prim),
             "color": self.light_color(prim),
             "radiance": self.intensity_and_exposure(prim),
         }
