@@ -130,6 +130,24 @@ impl CameraRays {
         }
     }
 
+    /// Image point `(x, y)` in pixels (as [`Self::direction`] takes them) of the world
+    /// point `p`; `None` behind the camera or for an equirectangular camera.
+    pub fn project(&self, p: DVec3) -> Option<(f64, f64)> {
+        match &self.kind {
+            Kind::Perspective { basis, plane, shift } => {
+                let local = basis.transpose() * (p - self.position);
+                if local.z >= -1e-300 || !local.is_finite() {
+                    return None;
+                }
+                let (a, b) = (-local.x / local.z, -local.y / local.z);
+                let u = (a - shift.0) / plane.0;
+                let v = (b - shift.1) / plane.1;
+                Some(((u + 0.5) / self.inv_width, (0.5 - v) / self.inv_height))
+            }
+            Kind::Equirectangular => None,
+        }
+    }
+
     /// Distance along the unit ray `dir` where the ray starts (Blender's clip
     /// start is a distance along the view axis for perspective cameras).
     #[inline]
@@ -166,6 +184,23 @@ mod tests {
             clip_start_m: 0.0,
             clip_end_m: None,
         }))
+    }
+
+    #[test]
+    fn project_inverts_direction() {
+        for (fit, shift) in [
+            (SensorFit::Auto, (0.0, 0.0)),
+            (SensorFit::Vertical, (0.1, -0.2)),
+            (SensorFit::Horizontal, (-0.05, 0.3)),
+        ] {
+            let cam = persp([64, 36], fit, shift);
+            for &(x, y) in &[(0.5, 0.5), (31.7, 12.25), (63.9, 35.1), (-3.0, 40.0)] {
+                let d = cam.direction(x, y);
+                let (px, py) = cam.project(cam.position + d * 7.5).unwrap();
+                assert!((px - x).abs() < 1e-9 && (py - y).abs() < 1e-9, "{fit:?}: ({x}, {y}) → ({px}, {py})");
+            }
+            assert!(cam.project(cam.position - cam.direction(10.0, 10.0)).is_none());
+        }
     }
 
     #[test]

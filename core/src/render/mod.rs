@@ -1494,23 +1494,13 @@ fn render_channels<const C: usize>(scene: &Scene, report: &mut Report, progress:
         }
         stats.max_abs += lap_abs;
         stats.max_rel += lap_rel;
-        // Pixels whose filter window holds the image of a point light: the
-        // in-scatter there has an integrable 1/r singularity, which the n×n
-        // midpoint rule resolves only at larger n.
-        let light_dirs: Vec<DVec3> = stage_lights
-            .points
-            .iter()
-            .filter_map(|p| (p.light.position - cam.position).try_normalize())
-            .collect();
+        // Pixels whose filter window holds (or is within a pixel of) the image
+        // of a point light: the in-scatter there has an integrable 1/r
+        // singularity, which the n×n midpoint rule resolves only at larger n.
+        let light_images: Vec<(f64, f64)> = stage_lights.points.iter().filter_map(|p| cam.project(p.light.position)).collect();
         let near_light_image = |x: f64, y: f64| -> bool {
-            if light_dirs.is_empty() {
-                return false;
-            }
-            let d = cam.direction(x, y);
-            let px = (cam.direction(x + 1.0, y) - d)
-                .length()
-                .max((cam.direction(x, y + 1.0) - d).length());
-            light_dirs.iter().any(|l| (*l - d).length() <= (filter.radius() + 1.0) * px)
+            let reach = filter.radius() + 1.0;
+            light_images.iter().any(|p| (p.0 - x).abs() <= reach && (p.1 - y).abs() <= reach)
         };
         let filtered: Vec<(usize, Sample, [f64; 3], usize, f64)> = edges
             .par_iter()
@@ -1522,13 +1512,13 @@ fn render_channels<const C: usize>(scene: &Scene, report: &mut Report, progress:
                     MAX_FILTER_SAMPLES_PER_AXIS
                 };
                 let scale = window_scale(i);
-                let (s, err, per_axis) = filter_pixel(&filter, x, y, tolerance, scale, max_n, &sample);
-                (i, s, err, per_axis, scale)
+                let (s, err, n) = filter_pixel(&filter, x, y, tolerance, scale, max_n, &sample);
+                (i, s, err, n * n, scale)
             })
             .collect();
         edge.pixels = filtered.len() as u64;
-        for (i, s, err, per_axis, scale) in &filtered {
-            edge.samples += (per_axis * per_axis) as u64;
+        for (i, s, err, samples, scale) in &filtered {
+            edge.samples += *samples as u64;
             inscatter[*i] = s.l.map(|v| v as f32);
             for (k, img) in light_inscatter.iter_mut().enumerate() {
                 img[*i] = s.lights[k].map(|v| v as f32);
@@ -1555,7 +1545,7 @@ fn render_channels<const C: usize>(scene: &Scene, report: &mut Report, progress:
         report.plan.computed(
             format!("pixel filter integral on {} pixels (silhouettes, sharp medium boundaries)", filtered.len()),
             format!(
-                "Blackman-Harris, filter size {:.2} px (Blender's; window ±{:.2} px as Cycles doubles it), n×n midpoint rule doubling from 4 to {MAX_FILTER_SAMPLES_PER_AXIS} per axis ({MAX_FILTER_SAMPLES_NEAR_LIGHT} where the window holds a point light's image) until two estimates agree to the tolerance: {} samples",
+                "Blackman-Harris, filter size {:.2} px (Blender's; window ±{:.2} px as Cycles doubles it), n×n midpoint rule doubling from 4 to {MAX_FILTER_SAMPLES_PER_AXIS} per axis ({MAX_FILTER_SAMPLES_NEAR_LIGHT} where the window holds a point light's image) until two estimates agree to the tolerance: {} samples (last estimates)",
                 filter.radius(),
                 filter.radius(),
                 edge.samples
@@ -1813,37 +1803,54 @@ fn filter_pixel(
         let mut acc = Sample::default();
         for &(dy, wy) in &nodes {
             for &(dx, wx) in &nodes {
-                let s = sample(x + dx, y + dy);
-                let wgt = wx * wy;
-                for c in 0..3 {
-                    acc.l[c] += wgt * s.l[c];
-                    acc.t[c] += wgt * s.t[c];
-                    acc.st[c] += wgt * s.st[c];
-                    acc.e[c] += wgt * s.e[c];
-                }
-                for (a, v) in acc.lights.iter_mut().zip(&s.lights) {
-                    for c in 0..3 {
-                        a[c] += wgt * v[c];
-                    }
-                }
-                for (a, v) in acc.surface_t.iter_mut().zip(&s.surface_t) {
-                    for c in 0..3 {
-                        a[c] += wgt * v[c];
-                    }
-                }
-                acc.hit_weight += wgt * s.hit_weight;
-                acc.numeric = match (acc.numeric, s.numeric) {
-                    (Some(a), Some(b)) => Some(a && b),
-                    (a, b) => a.or(b),
-                };
-                acc.in_medium |= s.in_medium;
-                acc.rel = acc.rel.max(s.rel);
+                accumulate(&mut acc, &sample(x + dx, y + dy), wx * wy);
             }
         }
         acc
     };
-    let mut coarse = estimate(4);
-    let mut n = 8;
+    refine_until_agreed(estimate, 4, max_per_axis, tolerance, scale_floor)
+}
+
+/// `acc += wgt · s` for the filtered quantities of a sample.
+fn accumulate(acc: &mut Sample, s: &Sample, wgt: f64) {
+    for c in 0..3 {
+        acc.l[c] += wgt * s.l[c];
+        acc.t[c] += wgt * s.t[c];
+        acc.st[c] += wgt * s.st[c];
+        acc.e[c] += wgt * s.e[c];
+    }
+    for (a, v) in acc.lights.iter_mut().zip(&s.lights) {
+        for c in 0..3 {
+            a[c] += wgt * v[c];
+        }
+    }
+    for (a, v) in acc.surface_t.iter_mut().zip(&s.surface_t) {
+        for c in 0..3 {
+            a[c] += wgt * v[c];
+        }
+    }
+    acc.hit_weight += wgt * s.hit_weight;
+    acc.numeric = match (acc.numeric, s.numeric) {
+        (Some(a), Some(b)) => Some(a && b),
+        (a, b) => a.or(b),
+    };
+    acc.in_medium |= s.in_medium;
+    acc.rel = acc.rel.max(s.rel);
+}
+
+/// Doubles the resolution `n` of `estimate(n)` from `start` until two successive
+/// estimates agree to `tolerance` (relative to the largest channel, at least
+/// `scale_floor`) or `n` reaches `max_n`; returns the finer estimate, the
+/// difference plus the samples' own error as its error, and `n`.
+fn refine_until_agreed(
+    estimate: impl Fn(usize) -> Sample,
+    start: usize,
+    max_n: usize,
+    tolerance: f64,
+    scale_floor: f64,
+) -> (Sample, [f64; 3], usize) {
+    let mut coarse = estimate(start);
+    let mut n = 2 * start;
     loop {
         let fine = estimate(n);
         let mut err = [0.0; 3];
@@ -1851,7 +1858,7 @@ fn filter_pixel(
             err[c] = (fine.l[c] - coarse.l[c]).abs() + fine.e[c];
         }
         let scale = fine.l.iter().fold(0.0f64, |m, v| m.max(v.abs())).max(scale_floor);
-        if n >= max_per_axis || err.iter().all(|e| *e <= tolerance * scale) {
+        if n >= max_n || err.iter().all(|e| *e <= tolerance * scale) {
             return (fine, err, n);
         }
         coarse = fine;
