@@ -19,15 +19,25 @@
 //! The split of a channel name into layer and channel happens at the **last**
 //! dot, so layer names may contain dots themselves: `inscatter.key light.R` is
 //! channel `R` of layer `inscatter.key light`.
+//!
+//! **Encoder.** Files are read with the exr crate but written by
+//! [`encode_exr`] here: the same layout, with the 16-line blocks compressed in
+//! parallel and deflated at zlib level 1 rather than the exr crate's fixed
+//! level 4. On Tyndall's layers (smooth transmittance and depth, mostly-zero
+//! per-light in-scatter) that is ≈ 3× less compression work for ≈ 5 % larger
+//! files (1920×1080, 22 channels: 25.1 MB instead of 23.8 MB). The block
+//! encoding is OpenEXR's (`ImfZip.cpp`): the bytes of the block's scan lines
+//! (per line, per channel in name order, little-endian samples) are split
+//! into the even- and the odd-indexed half, delta-coded
+//! (`d = b − b_prev + 128 mod 256`) and zlib-compressed; a block that would
+//! not shrink is stored raw, as OpenEXR does.
 
 use std::collections::HashSet;
-use std::io::{Read, Seek, SeekFrom, Write};
+use std::io::{BufWriter, Write};
 use std::path::Path;
 
-use exr::prelude::{
-    AnyChannel, AnyChannels, Blocks, Compression, Encoding, FlatSamples, Image, LineOrder, ReadChannels, ReadLayers, SmallVec,
-    SpecificChannels, Text, Vec2, WritableImage,
-};
+use exr::prelude::{FlatSamples, ReadChannels, ReadLayers};
+use rayon::prelude::*;
 
 use super::{ImageIoError, checked_pixel_count, write_atomically};
 
@@ -79,7 +89,7 @@ pub fn write_layers_exr(path: &Path, width: usize, height: usize, layers: &[Imag
     }
     let mut layer_names = HashSet::new();
     let mut full_names = HashSet::new();
-    let mut list = SmallVec::new();
+    let mut list: Vec<(String, &[f32])> = Vec::new();
     let mut long_names = false;
     for layer in layers {
         if !layer_names.insert(layer.name.as_str()) {
@@ -117,16 +127,15 @@ pub fn write_layers_exr(path: &Path, width: usize, height: usize, layers: &[Imag
                 )));
             }
             long_names |= full.len() >= LONG_NAME_BYTES;
-            let text = Text::from_slice_unchecked(full.as_bytes());
-            if !full_names.insert(full) {
+            if !full_names.insert(full.clone()) {
                 return Err(invalid(format!("duplicate channel {:?} in layer {:?}", channel, layer.name)));
             }
-            list.push(AnyChannel::new(text, FlatSamples::F32(samples.clone())));
+            list.push((full, samples.as_slice()));
         }
     }
-
-    let image = Image::from_encoded_channels((width, height), exr_encoding(), AnyChannels::sort(list));
-    write_exr_atomically(path, long_names, |file| image.write().to_unbuffered(file))
+    write_atomically(path, |file| {
+        encode_exr(file, width, height, list, long_names).map_err(|e| ImageIoError::io(path, e))
+    })
 }
 
 /// Reads an OpenEXR file written by [`write_layers_exr`] (or any other
@@ -205,23 +214,128 @@ pub fn write_rgb_exr(path: &Path, width: usize, height: usize, rgb: &[[f32; 3]])
             rgb.len()
         )));
     }
-    let channels = SpecificChannels::rgb(|position: Vec2<usize>| {
-        let [r, g, b] = rgb[position.y() * width + position.x()];
-        (r, g, b)
-    });
-    let image = Image::from_encoded_channels((width, height), exr_encoding(), channels);
-    write_exr_atomically(path, false, |file| image.write().to_unbuffered(file))
+    let planes: Vec<Vec<f32>> = (0..3).map(|c| rgb.iter().map(|p| p[c]).collect()).collect();
+    let list = ["R", "G", "B"]
+        .iter()
+        .zip(&planes)
+        .map(|(n, p)| ((*n).to_owned(), p.as_slice()))
+        .collect();
+    write_atomically(path, |file| {
+        encode_exr(file, width, height, list, false).map_err(|e| ImageIoError::io(path, e))
+    })
 }
 
-/// The encoding of every file written here: ZIP in 16-line blocks, scan lines,
-/// increasing Y. (The exr crate's default, `Encoding::FAST_LOSSLESS`, would be
-/// RLE in 64x64 tiles with unspecified line order.)
-const fn exr_encoding() -> Encoding {
-    Encoding {
-        compression: Compression::ZIP16,
-        blocks: Blocks::ScanLines,
-        line_order: LineOrder::Increasing,
+/// Scan lines per block of OpenEXR's `ZIP_COMPRESSION`.
+const ZIP_BLOCK_LINES: usize = 16;
+
+/// zlib level of the blocks (1: the fastest; see the module documentation).
+const DEFLATE_LEVEL: u8 = 1;
+
+/// Writes a single-part scan-line OpenEXR file: `channels` as `(full name,
+/// samples)` with 32-bit float samples, ZIP compression in 16-line blocks,
+/// increasing Y, data and display window `(0,0)–(width−1,height−1)`.
+/// Names must be valid (checked by the callers); they are sorted here, as
+/// OpenEXR requires.
+fn encode_exr(
+    file: &mut std::fs::File,
+    width: usize,
+    height: usize,
+    mut channels: Vec<(String, &[f32])>,
+    long_names: bool,
+) -> std::io::Result<()> {
+    channels.sort_by(|a, b| a.0.as_bytes().cmp(b.0.as_bytes()));
+    let attribute = |out: &mut Vec<u8>, name: &str, kind: &str, value: &[u8]| {
+        for text in [name, kind] {
+            out.extend_from_slice(text.as_bytes());
+            out.push(0);
+        }
+        out.extend_from_slice(&(value.len() as i32).to_le_bytes());
+        out.extend_from_slice(value);
+    };
+    let mut header = Vec::new();
+    header.extend_from_slice(&20000630_i32.to_le_bytes());
+    // Version 2, single-part scan lines; bit 10 for names of 32 bytes or more.
+    header.extend_from_slice(&(2_u32 | if long_names { 1 << 10 } else { 0 }).to_le_bytes());
+    let mut chlist = Vec::new();
+    for (name, _) in &channels {
+        chlist.extend_from_slice(name.as_bytes());
+        chlist.push(0);
+        chlist.extend_from_slice(&2_i32.to_le_bytes()); // FLOAT
+        chlist.extend_from_slice(&[0, 0, 0, 0]); // pLinear, reserved
+        chlist.extend_from_slice(&1_i32.to_le_bytes()); // x sampling
+        chlist.extend_from_slice(&1_i32.to_le_bytes()); // y sampling
     }
+    chlist.push(0);
+    let window: Vec<u8> = [0, 0, width as i32 - 1, height as i32 - 1]
+        .iter()
+        .flat_map(|v| v.to_le_bytes())
+        .collect();
+    attribute(&mut header, "channels", "chlist", &chlist);
+    attribute(&mut header, "compression", "compression", &[3]); // ZIP_COMPRESSION
+    attribute(&mut header, "dataWindow", "box2i", &window);
+    attribute(&mut header, "displayWindow", "box2i", &window);
+    attribute(&mut header, "lineOrder", "lineOrder", &[0]); // INCREASING_Y
+    attribute(&mut header, "pixelAspectRatio", "float", &1.0_f32.to_le_bytes());
+    attribute(&mut header, "screenWindowCenter", "v2f", &[0; 8]);
+    attribute(&mut header, "screenWindowWidth", "float", &1.0_f32.to_le_bytes());
+    header.push(0);
+
+    // Per worker, reused: the block's bytes split into halves, and their deltas.
+    let blocks: Vec<Vec<u8>> = (0..height.div_ceil(ZIP_BLOCK_LINES))
+        .into_par_iter()
+        .map_init(
+            || (Vec::new(), Vec::new()),
+            |(split, delta): &mut (Vec<u8>, Vec<u8>), b| {
+                let lines = b * ZIP_BLOCK_LINES..((b + 1) * ZIP_BLOCK_LINES).min(height);
+                let rows = || {
+                    lines
+                        .clone()
+                        .flat_map(|y| channels.iter().map(move |(_, v)| &v[y * width..(y + 1) * width]))
+                };
+                let n = lines.len() * channels.len() * width * 4;
+                // Byte k of the raw block goes to position k/2 of the even
+                // (k even) or the odd half: sample i's little-endian bytes
+                // b0 b1 b2 b3 give even[2i], even[2i+1] = b0, b2 and
+                // odd[2i], odd[2i+1] = b1, b3.
+                split.resize(n, 0);
+                let (even, odd) = split.split_at_mut(n / 2);
+                let (mut e, mut o) = (even.chunks_exact_mut(2), odd.chunks_exact_mut(2));
+                for row in rows() {
+                    for (v, (ev, od)) in row.iter().zip(e.by_ref().zip(o.by_ref())) {
+                        let [b0, b1, b2, b3] = v.to_le_bytes();
+                        ev.copy_from_slice(&[b0, b2]);
+                        od.copy_from_slice(&[b1, b3]);
+                    }
+                }
+                delta.resize(n, 0);
+                delta[0] = split[0];
+                for (d, pair) in delta[1..].iter_mut().zip(split.windows(2)) {
+                    *d = pair[1].wrapping_sub(pair[0]).wrapping_add(128);
+                }
+                let packed = miniz_oxide::deflate::compress_to_vec_zlib(delta, DEFLATE_LEVEL);
+                if packed.len() < n {
+                    packed
+                } else {
+                    rows().flat_map(|row| row.iter().flat_map(|v| v.to_le_bytes())).collect()
+                }
+            },
+        )
+        .collect();
+
+    let mut out = BufWriter::with_capacity(1 << 20, file);
+    out.write_all(&header)?;
+    let mut offset = (header.len() + 8 * blocks.len()) as u64;
+    for block in &blocks {
+        out.write_all(&offset.to_le_bytes())?;
+        offset += 8 + block.len() as u64;
+    }
+    for (b, block) in blocks.iter().enumerate() {
+        let size = i32::try_from(block.len()).map_err(|_| std::io::Error::other("an OpenEXR block of 16 scan lines exceeds 2 GiB"))?;
+        out.write_all(&((b * ZIP_BLOCK_LINES) as i32).to_le_bytes())?;
+        out.write_all(&size.to_le_bytes())?;
+        out.write_all(block)?;
+    }
+    out.flush()
 }
 
 /// `<layer>.<channel>`, or `<channel>` for the plain layer `""`.
@@ -264,41 +378,10 @@ fn exr_error(path: &Path, error: exr::error::Error) -> ImageIoError {
     }
 }
 
-/// Writes an OpenEXR file atomically with `encode`, then sets the header's
-/// long-names flag if needed.
-///
-/// The exr crate sets that flag only for long *attribute* names, not for
-/// channel names of 32 bytes or more, whereas OpenEXR requires it for both
-/// (OpenEXR 3 rejects such a file as "name too long" without it). The flag is
-/// bit 10 of the little-endian version field at bytes 4..8; it changes
-/// nothing else in a single-part file.
-fn write_exr_atomically<F>(path: &Path, long_names: bool, encode: F) -> Result<(), ImageIoError>
-where
-    F: FnOnce(&mut std::fs::File) -> exr::error::UnitResult,
-{
-    write_atomically(path, |file| {
-        encode(file).map_err(|e| exr_error(path, e))?;
-        if long_names {
-            set_long_names_flag(file).map_err(|e| ImageIoError::io(path, e))?;
-        }
-        Ok(())
-    })
-}
-
-/// Sets bit 10 of the version field of the OpenEXR file `file`.
-fn set_long_names_flag(file: &mut std::fs::File) -> std::io::Result<()> {
-    let mut version = [0_u8; 4];
-    file.seek(SeekFrom::Start(4))?;
-    file.read_exact(&mut version)?;
-    let flags = u32::from_le_bytes(version) | (1 << 10);
-    file.seek(SeekFrom::Start(4))?;
-    file.write_all(&flags.to_le_bytes())?;
-    file.flush()
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
+    use exr::prelude::{Compression, LineOrder, Vec2};
     use std::path::PathBuf;
 
     /// A fresh, empty directory for one test.

@@ -224,6 +224,8 @@ fn nishita_k(x: f64, period: f64, p: f64) -> f64 {
 
 impl Shape {
     /// Relative intensity for the direction with `cos θ` and azimuth `φ` (rad).
+    /// (The common shapes inline; the others are evaluated out of line.)
+    #[inline]
     pub fn eval(&self, cos_theta: f64, phi: f64) -> f64 {
         match self {
             Shape::Isotropic => 1.0,
@@ -236,6 +238,14 @@ impl Shape {
                     0.0
                 }
             }
+            _ => self.eval_other(cos_theta, phi),
+        }
+    }
+
+    #[inline(never)]
+    fn eval_other(&self, cos_theta: f64, phi: f64) -> f64 {
+        match self {
+            Shape::Isotropic | Shape::CyclesSpot { .. } => self.eval(cos_theta, phi),
             Shape::Nishita {
                 cos_gamma,
                 q,
@@ -303,14 +313,23 @@ impl Shape {
     }
 
     /// cos of the angles where the shape has a kink or jump (quadrature splits there).
-    pub fn kinks(&self) -> Vec<f64> {
+    pub fn kinks(&self) -> Kinks {
+        let mut k = Kinks::default();
         match self {
-            Shape::CyclesSpot { cos_half, smooth } if *smooth > 0.0 => vec![*cos_half, (cos_half + smooth).min(1.0)],
-            Shape::CyclesSpot { cos_half, .. } => vec![*cos_half],
-            Shape::Nishita { cos_gamma, .. } => vec![*cos_gamma],
-            Shape::UsdShaping { cutoff, softness, .. } => vec![cutoff.cos(), (cutoff * (1.0 - softness)).cos()],
-            _ => Vec::new(),
+            Shape::CyclesSpot { cos_half, smooth } => {
+                k.push(*cos_half);
+                if *smooth > 0.0 {
+                    k.push((cos_half + smooth).min(1.0));
+                }
+            }
+            Shape::Nishita { cos_gamma, .. } => k.push(*cos_gamma),
+            Shape::UsdShaping { cutoff, softness, .. } => {
+                k.push(cutoff.cos());
+                k.push((cutoff * (1.0 - softness)).cos());
+            }
+            _ => {}
         }
+        k
     }
 
     /// Upper bound of the shape's value.
@@ -358,6 +377,28 @@ impl Shape {
                 values: t.values.clone(),
             })),
         }
+    }
+}
+
+/// The distinct cosines where a distribution has kinks (at most four; no allocation).
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct Kinks {
+    values: [f64; 4],
+    len: usize,
+}
+
+impl Kinks {
+    /// Adds `c` unless it is already listed (or the list is full).
+    pub fn push(&mut self, c: f64) {
+        if self.len < self.values.len() && !self.as_slice().contains(&c) {
+            self.values[self.len] = c;
+            self.len += 1;
+        }
+    }
+
+    /// The listed cosines.
+    pub fn as_slice(&self) -> &[f64] {
+        &self.values[..self.len]
     }
 }
 
@@ -455,8 +496,24 @@ impl<const C: usize> PointSource<C> {
         f
     }
 
-    /// cos θ values where the factor has kinks or jumps.
-    pub fn kinks(&self) -> Vec<f64> {
+    /// Whether the factor depends on cos θ alone (no IES profile, no φ
+    /// dependence), so that [`PointSource::factor_cos`] applies.
+    pub fn is_axial(&self) -> bool {
+        self.ies.is_none() && !self.shape.needs_phi()
+    }
+
+    /// [`PointSource::factor`] of a direction with this cos θ, for a light
+    /// that [`PointSource::is_axial`].
+    #[inline]
+    pub fn factor_cos(&self, cos_theta: f64) -> f64 {
+        if cos_theta < self.cos_reach {
+            return 0.0;
+        }
+        self.shape.eval(cos_theta, 0.0)
+    }
+
+    /// The distinct cos θ values where the factor has kinks or jumps.
+    pub fn kinks(&self) -> Kinks {
         let mut k = self.shape.kinks();
         if self.cos_reach > -1.0 {
             k.push(self.cos_reach);
@@ -524,7 +581,8 @@ impl<const C: usize> PointSource<C> {
 /// any value in [−1, 1]; `d` unit). Robust form: the quadratic's roots only
 /// propose break points; every piece is classified by testing its midpoint
 /// with the exact predicate, so grazing rays and the second nappe never
-/// produce wrong intervals.
+/// produce wrong intervals. Segments clearly outside a cone with `c ≥ 0` (most
+/// view rays, for a spot) are rejected first by [`far_outside_cone`].
 #[allow(clippy::too_many_arguments)]
 pub fn ray_cone_intervals(o: DVec3, d: DVec3, lo: f64, hi: f64, apex: DVec3, axis: DVec3, c: f64, out: &mut Vec<(f64, f64)>) {
     out.clear();
@@ -536,13 +594,16 @@ pub fn ray_cone_intervals(o: DVec3, d: DVec3, lo: f64, hi: f64, apex: DVec3, axi
         return;
     }
     let w = o - apex;
+    let (da, wa) = (d.dot(axis), w.dot(axis));
+    if c >= 0.0 && far_outside_cone(w, d, lo, hi, axis, c, da, wa) {
+        return;
+    }
+    let wl = w.length();
     let inside = |t: f64| -> bool {
         let v = if t.is_finite() { w + d * t } else { d };
         v.dot(axis) >= c * v.length()
     };
     // (v·a)² − c²|v|² = 0 with v = w + t d, factored to limit cancellation.
-    let (da, wa) = (d.dot(axis), w.dot(axis));
-    let wl = w.length();
     let qa = (da - c) * (da + c);
     let qb = 2.0 * (da * wa - c * c * d.dot(w));
     let qc = (wa - c * wl) * (wa + c * wl);
@@ -605,6 +666,63 @@ pub fn ray_cone_intervals(o: DVec3, d: DVec3, lo: f64, hi: f64, apex: DVec3, axi
             }
         }
     }
+}
+
+/// Quick rejection for [`ray_cone_intervals`] with `c ≥ 0` (`w` = origin −
+/// apex, `da = d·axis`, `wa = w·axis`): whether `o + t·d`, `t ∈ [lo, hi]`,
+/// stays clearly outside the cone.
+///
+/// For `c ≥ 0`, `g(t) = v·a − c|v|` (`v = w + t·d`) is concave in `t` (a
+/// linear function minus `c` times a convex one) and the cone is `g ≥ 0`. With
+/// `p = w·d`, `m = w − p·d` (apex to the closest point of the line),
+/// `q = |m|` and `s = t + p`: `|v| = √(q² + s²)` and
+/// `g = m·a + da·s − c√(q² + s²)`. When `|da| < c` it is maximal at
+/// `s* = da·q/√(c² − da²)`, with maximum `m·a − q√(c² − da²)`; it increases
+/// (decreases) without bound when `da ≥ c` (`da ≤ −c`). The maximum over
+/// `[lo, hi]` is therefore at `t* = s* − p` clamped to `[lo, hi]`. Every
+/// comparison is made on squares of non-negative sides, so no square root or
+/// division is taken: the test costs a few dot products. A segment is
+/// rejected when the maximum is below `−M`, `M = 1e-12` of the scale (far
+/// above rounding); anything closer is left to the exact classification.
+#[allow(clippy::too_many_arguments)]
+#[inline]
+fn far_outside_cone(w: DVec3, d: DVec3, lo: f64, hi: f64, axis: DVec3, c: f64, da: f64, wa: f64) -> bool {
+    let scale = w.abs().element_sum();
+    // g(t) < −M at one point, as v·a + M < c|v|.
+    let outside_at = |t: f64| -> bool {
+        if !t.is_finite() {
+            return false;
+        }
+        let v = w + d * t;
+        let lhs = v.dot(axis) + 1e-12 * (scale + t.abs());
+        lhs < 0.0 || lhs * lhs < c * c * v.length_squared()
+    };
+    if da >= c {
+        return outside_at(hi);
+    }
+    if da <= -c {
+        return outside_at(lo);
+    }
+    let p = w.dot(d);
+    let q2 = (w - d * p).length_squared();
+    let k2 = (c - da) * (c + da);
+    // Whether s* = da·√(q²/k²) < x, by the signs and squares of both sides.
+    let s_star_below = |x: f64| -> bool {
+        if da >= 0.0 {
+            x > 0.0 && da * da * q2 < x * x * k2
+        } else {
+            x >= 0.0 || da * da * q2 > x * x * k2
+        }
+    };
+    if s_star_below(lo + p) {
+        return outside_at(lo);
+    }
+    if !s_star_below(hi + p) {
+        return outside_at(hi);
+    }
+    // t* inside [lo, hi]: the line's maximum m·a − q√k² < −M.
+    let lhs = wa - da * p + 1e-12 * (scale + p.abs());
+    lhs < 0.0 || lhs * lhs < q2 * k2
 }
 
 /// The intervals of `[lo, hi]` where `o + t·d` is inside the elliptical cone
@@ -735,6 +853,39 @@ mod tests {
                 }
             }
         }
+    }
+
+    /// The quick rejection never drops a segment that has a point inside the cone.
+    #[test]
+    fn quick_cone_rejection_is_conservative() {
+        let mut rng = 777u64;
+        let mut next = || {
+            rng = rng.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            ((rng >> 11) as f64) / ((1u64 << 53) as f64) * 2.0 - 1.0
+        };
+        let mut rejected = 0;
+        for &c in &[0.999999, 0.99, 0.9, 0.7, 0.3, 0.0] {
+            let axis = DVec3::new(next(), next(), next()).normalize();
+            for k in 0..2000 {
+                let w = DVec3::new(next(), next(), next()) * 5.0;
+                let d = DVec3::new(next(), next(), next()).normalize();
+                let (lo, hi) = (
+                    next().abs() * 2.0,
+                    if k % 3 == 0 { f64::INFINITY } else { 2.0 + 6.0 * next().abs() },
+                );
+                if !far_outside_cone(w, d, lo, hi, axis, c, d.dot(axis), w.dot(axis)) {
+                    continue;
+                }
+                rejected += 1;
+                let end = if hi.is_finite() { hi } else { 1e4 };
+                for j in 0..=2000 {
+                    let t = lo + (end - lo) * (j as f64 / 2000.0).powi(3);
+                    let v = w + d * t;
+                    assert!(v.dot(axis) < c * v.length(), "c={c} t={t}: inside, but rejected");
+                }
+            }
+        }
+        assert!(rejected > 1000, "{rejected}");
     }
 
     #[test]

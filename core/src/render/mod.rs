@@ -535,7 +535,7 @@ fn prepare_stage_shadows<const C: usize>(scene: &Scene, stage_lights: &mut stage
             report.plan.computed(
                 format!("shadows of \"{name}\""),
                 format!(
-                    "exact lit segments: {} silhouette/boundary edges of {} triangles inside the illumination volume, crossings found in a light-space BVH, one shadow ray per piece",
+                    "exact lit segments: {} silhouette/boundary edges of {} triangles inside the illumination volume, crossings found in a light-space BVH, one shadow ray per piece unless the light's visibility grid decides it",
                     sw.wedge_count(),
                     sw.triangles_used
                 ),
@@ -560,7 +560,8 @@ fn report_stage<const C: usize>(stage_lights: &stage::StageLights<C>, stats: &Ro
     report.plan.computed(
         format!("{} lit segments on {} view rays", stats.stage_segments, stats.stage_rays),
         format!(
-            "adaptive Gauss-Kronrod G7-K15 per segment to the relative tolerance; {} shadow rays",
+            "adaptive Gauss-Kronrod per segment to the relative tolerance (G3-K7 at tolerances >= {:e}, else G7-K15); {} shadow rays (where the lights' visibility grids did not decide)",
+            stage::K7_MIN_TOLERANCE,
             stats.stage_shadow_rays
         ),
     );
