@@ -1042,6 +1042,11 @@ impl Table {
 
     /// Interpolated candela at Cycles angles (degrees).
     fn eval(&self, v_deg: f64, h_deg: f64) -> f64 {
+        self.eval_unclamped(v_deg, h_deg).max(0.0)
+    }
+
+    /// [`Table::eval`] before Cycles' final clamp at 0 (0 outside the ranges).
+    fn eval_unclamped(&self, v_deg: f64, h_deg: f64) -> f64 {
         let (v0, v1) = (self.v[0], self.v[self.v.len() - 1]);
         if !(v_deg >= v0 - END_TOL && v_deg <= v1 + END_TOL) || v_deg > self.bound_deg {
             return 0.0;
@@ -1063,7 +1068,7 @@ impl Table {
         let vi = self.v_idx(j);
         let col = |k: usize| cr(&wv, vi.map(|r| self.at(k, r)));
         let hi = self.h_idx(i);
-        cr(&wh, hi.map(col)).max(0.0)
+        cr(&wh, hi.map(col))
     }
 
     fn row_nonzero(&self, iv: usize) -> bool {
@@ -1108,6 +1113,29 @@ impl Table {
             }
         }
         bound
+    }
+
+    /// Vertical angle (deg) beyond which the interpolated value is 0 for every
+    /// horizontal angle in segment `i` (`h[i]..h[i+1]`). On a cell (segment i
+    /// in h, segment j in v) the value is `max(0, Σ_k Σ_r w_k w_r T[k][r])`
+    /// over the four columns k and rows r the cell reads; the inner weights
+    /// (b, c) of Catmull-Rom are ≥ 0 and the outer ones (a, d) ≤ 0 (an index
+    /// read twice, at the table's ends, gets both signs), and T ≥ 0 (the
+    /// parser rejects negative candela). So a product `w_k w_r` can be
+    /// positive only for inner×inner or outer×outer pairs, and if T is 0 on
+    /// all of those the cell is exactly 0 after the clamp.
+    fn segment_bound(&self, i: usize) -> f64 {
+        let split = |idx: [usize; 4]| ([idx[1], idx[2]], [idx[0], idx[3]]);
+        let (h_in, h_out) = split(self.h_idx(i));
+        let mut bound = 0.0f64;
+        for j in 0..self.v.len() - 1 {
+            let (v_in, v_out) = split(self.v_idx(j));
+            let any = |ks: [usize; 2], rs: [usize; 2]| ks.iter().any(|&k| rs.iter().any(|&r| self.at(k, r) != 0.0));
+            if any(h_in, v_in) || any(h_out, v_out) {
+                bound = self.v[j + 1];
+            }
+        }
+        bound.min(self.bound_deg)
     }
 
     /// Guaranteed upper bound of `eval` (cell-wise interval Catmull-Rom).
@@ -1168,6 +1196,17 @@ impl IesProfile {
         }
     }
 
+    /// The interpolated candela towards `dir_local` before Cycles clamps it
+    /// at 0: negative where the Catmull-Rom interpolation undershoots (thin
+    /// dark gaps and islands of light near a cutoff start where it changes
+    /// sign, which is where the in-scatter integral cuts its windows).
+    pub fn candela_unclamped(&self, dir_local: DVec3) -> f64 {
+        match cycles_angles(dir_local) {
+            Some((v, h)) => self.table.eval_unclamped(v, h),
+            None => 0.0,
+        }
+    }
+
     /// What Cycles' IES Texture node outputs for this direction with Strength 1
     /// (default vector input): the factor multiplying the light's emission.
     pub fn cycles_factor(&self, dir_local: DVec3) -> f64 {
@@ -1201,6 +1240,34 @@ impl IesProfile {
     /// is exactly 0; π when light can go straight up, 0 when the table is all zero.
     pub fn bounding_half_angle(&self) -> f64 {
         self.table.bound_deg.min(180.0).to_radians()
+    }
+
+    /// The vertical and horizontal angles of Cycles' table, rad (where its
+    /// interpolation changes cell).
+    pub fn cell_angles(&self) -> (Vec<f64>, Vec<f64>) {
+        let rad = |xs: &[f64]| xs.iter().map(|x| x.to_radians()).collect::<Vec<_>>();
+        (rad(&self.table.v), rad(&self.table.h))
+    }
+
+    /// A tighter, elliptical illumination volume for a non-axisymmetric
+    /// profile: `(a, b)` with `(tan θ cos φ / a)² + (tan θ sin φ / b)² ≤ 1` for
+    /// every direction with a non-zero intensity (θ from local −Z, φ from local
+    /// +X towards +Y), when that ellipse has less than 0.9 of the area of the
+    /// circular cone of [`IesProfile::bounding_half_angle`]; `None` otherwise
+    /// (axisymmetric or nearly so, or lit beyond 80°). Each horizontal segment
+    /// `h[i]..h[i+1]` of Cycles' table gets its own vertical bound (the four
+    /// columns its interpolation reads), and a direction at Cycles angles
+    /// (v, h) lies at `tan v · (−sin h, −cos h)` in the gnomonic plane, so the
+    /// segment is the circular sector φ ∈ [−90° − h[i+1], −90° − h[i]].
+    pub fn bounding_ellipse(&self) -> Option<(f64, f64)> {
+        let t = &self.table;
+        let sectors: Vec<(f64, f64, f64)> = (0..t.h.len().saturating_sub(1))
+            .map(|i| {
+                let (p0, p1) = ((-90.0 - t.h[i + 1]).to_radians(), (-90.0 - t.h[i]).to_radians());
+                (p0, p1, t.segment_bound(i).to_radians())
+            })
+            .collect();
+        super::bounding_ellipse_of_sectors(&sectors, self.bounding_half_angle())
     }
 
     /// The table Cycles interpolates (angles in degrees, after symmetry/type conversion).

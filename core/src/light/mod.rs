@@ -15,7 +15,16 @@
 //!
 //! **Illumination volume.** Every distribution knows the half-angle outside
 //! which it is exactly zero: the light's bounding cone. View rays that miss it
-//! evaluate no integral, occluders outside it cast nothing.
+//! evaluate no integral, occluders outside it cast nothing. Non-axisymmetric
+//! tables and IES profiles also get an elliptical cone (the least-area
+//! axis-aligned ellipse in the gnomonic plane holding every lit direction,
+//! [`bounding_ellipse_of_sectors`]); a ray's lit part is inside both.
+//!
+//! **Tables.** Their interpolation changes cell at the θ and φ nodes (kinks
+//! for linear tables, jumps of the second derivative for IES Catmull-Rom), so
+//! the in-scatter integral cuts rays at those cones and planes
+//! ([`PointSource::cell_cones`], [`PointSource::cell_planes`]): every window
+//! of the quadrature then lies in one cell, where the interpolant is smooth.
 
 pub mod ies;
 pub mod shadow;
@@ -23,7 +32,7 @@ pub mod window;
 
 use crate::scene::{IntensityDistribution, Orientation, PointLight, SpotLight};
 use glam::{DQuat, DVec3};
-use std::f64::consts::PI;
+use std::f64::consts::{FRAC_PI_2, PI};
 use std::sync::Arc;
 
 /// Cycles' point/spot lamp conversion, W·sr⁻¹ of intensity per W of Power.
@@ -154,48 +163,20 @@ impl Table {
     /// `tan θ sin φ`) holding every direction the table lights, when that is
     /// tighter than the circular cone (non-axisymmetric tables, reach < 80°):
     /// between two φ rows the lit reach is at most the larger of theirs, so
-    /// the support is inside the union of circular sectors with those radii;
-    /// the sectors' boundary is sampled finely (including the sector
-    /// corners) and the aspect ratio b/a chosen by a 1-D search for the least
-    /// area, the ellipse then scaled to hold every sampled point and
-    /// inflated by 1e-9. Sectors are convex-free arcs of circles, so the
-    /// sampled arcs are refined until the chord error is below 1e-6.
+    /// the support is inside the union of circular sectors with those radii
+    /// ([`bounding_ellipse_of_sectors`]).
     pub fn bounding_ellipse(&self) -> Option<(f64, f64)> {
         let n = self.phi.len();
-        let reach = self.reach();
-        if n < 2 || reach <= 0.0 || reach >= 80f64.to_radians() {
+        if n < 2 {
             return None;
         }
-        let two_pi = 2.0 * PI;
-        let mut pts: Vec<(f64, f64)> = Vec::new();
-        for i in 0..n {
-            let (p0, p1) = (self.phi[i], if i + 1 < n { self.phi[i + 1] } else { self.phi[0] + two_pi });
-            let r = self.row_reach(i).max(self.row_reach((i + 1) % n)).tan();
-            // 720 steps per turn: the arc between samples bulges out by
-            // r(1 − cos(π/720)) < 1e-5 r, covered by the final inflation.
-            let steps = (((p1 - p0) / two_pi) * 720.0).ceil().max(1.0) as usize;
-            for k in 0..=steps {
-                let p = p0 + (p1 - p0) * k as f64 / steps as f64;
-                pts.push((r * p.cos(), r * p.sin()));
-            }
-        }
-        let inflate = 1.0 + 2e-5;
-        let mut best: Option<(f64, f64, f64)> = None;
-        for k in 0..=200 {
-            let ratio = 10f64.powf(-1.0 + 2.0 * k as f64 / 200.0);
-            let a = pts
-                .iter()
-                .map(|(x, y)| (x * x + (y / ratio) * (y / ratio)).sqrt())
-                .fold(0.0, f64::max)
-                * inflate;
-            let area = a * a * ratio;
-            if best.is_none_or(|b| area < b.2) {
-                best = Some((a, a * ratio, area));
-            }
-        }
-        let (a, b, area) = best?;
-        let circle = reach.tan() * reach.tan();
-        if area < 0.9 * circle { Some((a, b)) } else { None }
+        let sectors: Vec<(f64, f64, f64)> = (0..n)
+            .map(|i| {
+                let (p0, p1) = (self.phi[i], if i + 1 < n { self.phi[i + 1] } else { self.phi[0] + 2.0 * PI });
+                (p0, p1, self.row_reach(i).max(self.row_reach((i + 1) % n)))
+            })
+            .collect();
+        bounding_ellipse_of_sectors(&sectors, self.reach())
     }
 
     /// Largest θ with a possibly non-zero value.
@@ -402,6 +383,53 @@ impl Kinks {
     }
 }
 
+/// The least-area axis-aligned ellipse `(a, b)` in a light's gnomonic plane
+/// (`tan θ cos φ`, `tan θ sin φ`; φ from local +X towards +Y) that holds
+/// every direction of the given circular sectors `(φ₀, φ₁, θ_max)` (radians,
+/// φ₀ ≤ φ₁), when its area is below 0.9 of the circular cone of half-angle
+/// `reach` (rad) — otherwise `None` and the circle stays. Sector arcs are
+/// sampled at 720 steps per turn (chord error `r(1 − cos(π/720))` < 1e-5 r),
+/// every sector corner included; the aspect ratio `b/a` is searched over
+/// [0.1, 10] on 201 log-spaced values, `a` is then the smallest that holds
+/// every sample, and the result is inflated by 2e-5 to cover the chords.
+/// Only for reaches below 80° (the gnomonic plane blows up towards 90°).
+pub fn bounding_ellipse_of_sectors(sectors: &[(f64, f64, f64)], reach: f64) -> Option<(f64, f64)> {
+    if sectors.is_empty() || !(reach > 0.0 && reach < 80f64.to_radians()) {
+        return None;
+    }
+    let two_pi = 2.0 * PI;
+    let mut pts: Vec<(f64, f64)> = Vec::new();
+    for &(p0, p1, theta_max) in sectors {
+        let r = theta_max.clamp(0.0, reach).tan();
+        let steps = (((p1 - p0) / two_pi) * 720.0).ceil().max(1.0) as usize;
+        for k in 0..=steps {
+            let p = p0 + (p1 - p0) * k as f64 / steps as f64;
+            pts.push((r * p.cos(), r * p.sin()));
+        }
+    }
+    let inflate = 1.0 + 2e-5;
+    let mut best: Option<(f64, f64, f64)> = None;
+    for k in 0..=200 {
+        let ratio = 10f64.powf(-1.0 + 2.0 * k as f64 / 200.0);
+        let a = pts
+            .iter()
+            .map(|(x, y)| (x * x + (y / ratio) * (y / ratio)).sqrt())
+            .fold(0.0, f64::max)
+            * inflate;
+        let area = a * a * ratio;
+        if best.is_none_or(|b| area < b.2) {
+            best = Some((a, a * ratio, area));
+        }
+    }
+    let (a, b, area) = best?;
+    let circle = reach.tan() * reach.tan();
+    if a > 0.0 && b > 0.0 && area < 0.9 * circle {
+        Some((a, b))
+    } else {
+        None
+    }
+}
+
 /// A light's local frame in world space.
 #[derive(Debug, Clone, Copy)]
 pub struct LightFrame {
@@ -463,10 +491,18 @@ pub struct PointSource<const C: usize> {
     pub cos_reach: f64,
     /// Upper bound of `shape × IES factor`.
     pub max_factor: f64,
-    /// A tighter, elliptical illumination volume for non-axisymmetric tables:
+    /// A tighter, elliptical illumination volume for non-axisymmetric tables
+    /// and IES profiles (intersected with the cone of `cos_reach`):
     /// `(a, b)` such that every lit direction has
     /// `(tan θ cos φ / a)² + (tan θ sin φ / b)² ≤ 1` (`None`: the circular cone only).
     pub ellipse: Option<(f64, f64)>,
+    /// cos θ of the cones where a table's interpolation changes cell (its θ
+    /// or IES vertical nodes inside the reach): the integrand is only C¹ (IES
+    /// Catmull-Rom) or C⁰ (linear tables) across them, so rays are cut there.
+    pub cell_cones: Vec<f64>,
+    /// World normals of the planes through the axis where a table changes
+    /// cell in φ (its φ nodes, IES horizontal angles); rays are cut there.
+    pub cell_planes: Vec<DVec3>,
 }
 
 /// Closest distance at which a view ray is evaluated, m, for a light of
@@ -551,7 +587,10 @@ impl<const C: usize> PointSource<C> {
         ies: Option<(Arc<ies::IesProfile>, f64)>,
     ) -> Self {
         let frame = LightFrame::new(position, orientation);
+        // The elliptical volume is intersected with the circular cone of
+        // `cos_reach` where rays are cut (both bound the lit directions).
         let ellipse = match (&shape, &ies) {
+            (_, Some((p, _))) => p.bounding_ellipse(),
             (Shape::Tabulated(t), None) => t.bounding_ellipse(),
             _ => None,
         };
@@ -560,6 +599,37 @@ impl<const C: usize> PointSource<C> {
         if let Some((p, s)) = &ies {
             cos_reach = cos_reach.max(p.bounding_half_angle().cos());
             max_factor *= s * p.max_cycles_factor();
+        }
+        // Cell boundaries of tabulated distributions, as cones (θ nodes) and
+        // planes through the axis (φ nodes; a plane holds φ and φ + π).
+        let (mut cell_theta, mut cell_phi): (Vec<f64>, Vec<f64>) = (Vec::new(), Vec::new());
+        if let Shape::Tabulated(t) = &shape {
+            cell_theta.extend(t.theta.iter().copied());
+            if t.phi.len() > 1 {
+                cell_phi.extend(t.phi.iter().copied());
+            }
+        }
+        if let Some((p, _)) = &ies {
+            let (v, h) = p.cell_angles();
+            cell_theta.extend(v);
+            // Cycles' C-plane h lies along local (−sin h, −cos h): φ = −π/2 − h.
+            cell_phi.extend(h.iter().map(|h| -FRAC_PI_2 - h));
+        }
+        let reach = cos_reach.clamp(-1.0, 1.0).acos();
+        let mut cell_cones: Vec<f64> = cell_theta
+            .iter()
+            .filter(|t| **t > 1e-9 && **t < reach - 1e-9 && **t < PI - 1e-9)
+            .map(|t| t.cos())
+            .collect();
+        cell_cones.sort_by(f64::total_cmp);
+        cell_cones.dedup_by(|a, b| (*a - *b).abs() < 1e-12);
+        let mut cell_planes: Vec<DVec3> = Vec::new();
+        for phi in cell_phi {
+            let dir = frame.x * phi.cos() + frame.y * phi.sin();
+            let n = frame.axis.cross(dir).normalize_or_zero();
+            if n != DVec3::ZERO && !cell_planes.iter().any(|m| m.cross(n).length() < 1e-9) {
+                cell_planes.push(n);
+            }
         }
         PointSource {
             name: name.to_string(),
@@ -572,6 +642,8 @@ impl<const C: usize> PointSource<C> {
             cos_reach,
             max_factor,
             ellipse,
+            cell_cones,
+            cell_planes,
         }
     }
 }

@@ -364,7 +364,12 @@ impl<const C: usize> StageLights<C> {
         for p in &self.points {
             let l = &p.light;
             match l.ellipse {
-                Some(e) => ray_elliptic_cone_intervals(o, d, 0.0, ray.s_max, l.position, &l.frame, e, &mut scratch.cone),
+                Some(e) => {
+                    // Inside the elliptical cone and inside the circular one.
+                    ray_elliptic_cone_intervals(o, d, 0.0, ray.s_max, l.position, &l.frame, e, &mut scratch.kink);
+                    ray_cone_intervals(o, d, 0.0, ray.s_max, l.position, l.frame.axis, l.cos_reach, &mut scratch.lit);
+                    intersect(&scratch.kink, &scratch.lit, &mut scratch.cone);
+                }
                 None => ray_cone_intervals(o, d, 0.0, ray.s_max, l.position, l.frame.axis, l.cos_reach, &mut scratch.cone),
             }
             intersect(&scratch.cone, &scratch.media, &mut scratch.pieces);
@@ -467,13 +472,30 @@ impl<const C: usize> StageLights<C> {
         for &k in l.kinks().as_slice() {
             // The bounding cone's own surface ends the lit segments already
             // (its crossings are the ends of `scratch.cone`): no cut inside.
-            if k == l.cos_reach && l.ellipse.is_none() {
+            if k == l.cos_reach {
                 continue;
             }
             ray_cone_intervals(o, d, 0.0, ray.s_max, l.position, l.frame.axis, k, &mut scratch.kink);
             for &(a, b) in &scratch.kink {
                 scratch.cuts.push(a);
                 scratch.cuts.push(b);
+            }
+        }
+        // Cell boundaries of a tabulated or IES distribution.
+        for &k in &l.cell_cones {
+            ray_cone_intervals(o, d, 0.0, ray.s_max, l.position, l.frame.axis, k, &mut scratch.kink);
+            for &(a, b) in &scratch.kink {
+                scratch.cuts.push(a);
+                scratch.cuts.push(b);
+            }
+        }
+        for n in &l.cell_planes {
+            let dn = d.dot(*n);
+            if dn != 0.0 {
+                let t = (l.position - o).dot(*n) / dn;
+                if t > 0.0 && t < ray.s_max {
+                    scratch.cuts.push(t);
+                }
             }
         }
         let to_u = |t: f64| -> f64 { if t.is_finite() { ((t - tc) / h).atan() } else { FRAC_PI_2 } };
@@ -660,6 +682,50 @@ impl<const C: usize> StageLights<C> {
             }
             bounds.push(ub);
             bounds.sort_by(f64::total_cmp);
+            // IES profiles: Cycles clamps its Catmull-Rom interpolation at 0,
+            // and near a cutoff the interpolant can dip below 0 for a sliver
+            // (a thin dark gap) or rise above it (a thin island of light). A
+            // gap or island between the nodes of a panel is invisible to the
+            // Kronrod–Gauss estimate, so the sign changes of the unclamped
+            // value are found (8 samples per window, then bisection) and cut
+            // at: every window then holds a smooth integrand. The windows lie
+            // in one table cell each (cut at `cell_cones`/`cell_planes`),
+            // where the interpolant is a low-degree polynomial in the cell's
+            // coordinates; a pair of sign changes between two samples is a
+            // gap or island narrower than an eighth of the window, whose
+            // contribution is second order in its width.
+            if let Some((profile, _)) = &l.ies {
+                let signed = |u: f64| profile.candela_unclamped(l.frame.to_local(n_hat * u.cos() + d * u.sin()));
+                let mut extra = Vec::new();
+                for wdw in bounds.windows(2) {
+                    let (u0, u1) = (wdw[0], wdw[1]);
+                    if u1.partial_cmp(&u0) != Some(std::cmp::Ordering::Greater) {
+                        continue;
+                    }
+                    const SAMPLES: usize = 8;
+                    let mut prev = (u0, signed(u0));
+                    for k in 1..=SAMPLES {
+                        let u = u0 + (u1 - u0) * k as f64 / SAMPLES as f64;
+                        let cur = (u, signed(u));
+                        if (prev.1 > 0.0) != (cur.1 > 0.0) {
+                            let (mut lo, mut hi) = (prev.0, cur.0);
+                            let lo_pos = prev.1 > 0.0;
+                            for _ in 0..50 {
+                                let mid = 0.5 * (lo + hi);
+                                if (signed(mid) > 0.0) == lo_pos {
+                                    lo = mid;
+                                } else {
+                                    hi = mid;
+                                }
+                            }
+                            extra.push(0.5 * (lo + hi));
+                        }
+                        prev = cur;
+                    }
+                }
+                bounds.extend_from_slice(&extra);
+                bounds.sort_by(f64::total_cmp);
+            }
             let fast = plain.as_ref().is_some_and(|p| a >= p.lo && b <= p.hi);
             for wdw in bounds.windows(2) {
                 if wdw[1] <= wdw[0] {
