@@ -131,18 +131,32 @@
 //!
 //! Per species the **column** `C_k = ∫ ρ_k(h(t)) dt` (metres of path at the
 //! reference density: sea level for Rayleigh and Mie, the 25 km peak for
-//! ozone; [`Columns`]) is integrated adaptively on pieces split at the crossings
-//! of the ozone kinks (10, 25, 40 km) and at the ray's lowest point; each piece
-//! has an analytic integrand, where G7–K15 converges fast and its
-//! `|K15 − G7|` estimate is conservative. The optical depth is
+//! ozone; [`Columns`]). The optical depth is
 //!
 //! ```text
 //! τ(λ) = a·β_R(λ)·C_R + d·β_M,ext·C_M + o·β_O(λ)·C_O     (a, d, o = density multipliers)
 //! ```
 //!
-//! A Chapman-function approximation would be faster, but its ~1e-3 error is
-//! far above the 1e-8 asked of the columns; the quadrature costs a few
-//! hundred density evaluations per ray at 1e-10.
+//! Two ways of computing columns are used:
+//!
+//! * **Reference quadrature** for the public column functions
+//!   ([`columns_to_boundary`], [`columns_to_space`], [`columns_along_ray`]) and
+//!   the sun ([`AtmosphereParams::sun_spectral_irradiance`], to 1e-11): the
+//!   densities are integrated adaptively on pieces split at the crossings of
+//!   the ozone kinks (10, 25, 40 km) and at the ray's lowest point; each piece
+//!   has an analytic integrand, where G7–K15 converges fast and its
+//!   `|K15 − G7|` estimate is conservative (a few hundred density evaluations
+//!   per ray at 1e-10).
+//! * **Tables and closed forms** inside the sky integral
+//!   ([`crate::sky::optical_depth`]): Rayleigh and Mie columns from Chapman-function
+//!   tables (`C(P → top) = C∞(P) − C∞(top exit)`, the view column as the
+//!   difference of two columns to infinity along the view ray, downward rays
+//!   reflected at their perigee), interpolated to ≈ 1e-11 relative with a
+//!   measured, charged error; the ozone column in closed form. Not an
+//!   approximation of the model in the usual Chapman sense (whose ~1e-3
+//!   error would be far too large): the tables interpolate the exact columns
+//!   of this spherical, truncated atmosphere, and their error is part of the
+//!   sky's error estimate.
 //!
 //! # Sun and sky
 //!
@@ -164,14 +178,18 @@
 //! Cornette–Shanks lobe with g = 0.8 and a 0.545° sun, the disc-averaged phase
 //! differs from the point value by at most 3.4e-4 relative, at the sun's
 //! centre). Each sample of the integrand needs two columns: observer → P
-//! (view) and P → top along s (sun). The outer integral is split at the ends,
-//! the shadow's edges, the ozone-kink crossings of the view ray and of the
-//! sun rays, and the view ray's lowest point, then refined globally (always
-//! the panel with the largest weighted error) until every wavelength's summed
-//! `|K15 − G7|` is at most `rel_tol · max(|L(λ)|, 10⁻² max_λ |L|)`. The inner
-//! columns are computed to an absolute accuracy that keeps their effect on τ
-//! below `0.03 rel_tol`; their estimated effect (`L · max δτ`) is added to
-//! the reported error.
+//! (view) and P → top along s (sun), both from the tables of
+//! [`crate::sky::optical_depth`] (three or four look-ups and one or two
+//! logarithms per ozone piece instead of two adaptive integrals), and
+//! `exp(−τ)` at every wavelength ([`crate::sky::optical_depth::exp_neg`],
+//! which vectorises). The outer integral is split at the ends, the shadow's
+//! edges, the ozone-kink crossings of the view ray and of the sun rays, and
+//! the view ray's lowest point, then refined globally (always the panel with
+//! the largest weighted error) until every wavelength's summed
+//! `|K15 − G7|` is at most `rel_tol · max(|L(λ)|, 10⁻² max_λ |L|)`. The
+//! columns' charged errors (≈ 1e-11 relative for Rayleigh and Mie, 1e-12
+//! relative plus 1e-6 m for ozone) bound `δτ`; their effect `L · max δτ` is
+//! added to the reported error.
 //!
 //! # Multiple scattering (optional, off unless asked for)
 //!
@@ -188,13 +206,16 @@
 
 use crate::medium::phase::PhaseFunction;
 use crate::numeric::integrate_adaptive;
-use crate::sky::bands::Bands;
+use crate::sky::bands::{Bands, Expander};
+use crate::sky::optical_depth::{
+    ChapmanTables, Col2, Line, OzoneCumulative, chapman_tables, column_to_infinity, column_to_top, exp_neg, ozone_error, transmittances,
+};
 use crate::spectrum::{SPECTRAL_SAMPLES, Spectrum, solar_spectral_irradiance, wavelengths_nm};
 use glam::DVec3;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use std::f64::consts::{FRAC_PI_2, PI};
-use std::sync::LazyLock;
+use std::sync::{LazyLock, OnceLock};
 
 // ---------------------------------------------------------------------------
 // Constants of the model
@@ -468,10 +489,6 @@ pub struct ColumnResult {
 }
 
 /// Globally adaptive G7–K15 of a vector-valued `f` over the pieces between
-/// consecutive (sorted) `breaks`: always splits the panel with the largest
-/// error relative to its component's tolerance, until every component's
-/// summed `|K15 − G7|` is at most `max(abs_tol, rel_tol · max(|V_i|, floor · max_j |V_j|))`
-/// or `max_panels` panels are in use. Returns (value, error, evaluations).
 fn integrate_pieces<const N: usize>(
     f: &mut impl FnMut(f64) -> [f64; N],
     breaks: &[f64],
@@ -579,29 +596,77 @@ fn columns_relative(ray: &Ray, t0: f64, t1: f64, rel_tol: f64) -> ([f64; 3], [f6
     (v, e, evals)
 }
 
-/// Columns over `[t0, t1]` of `ray` such that each species' optical depth
-/// `w_k C_k` is accurate to `tau_tol` (absolute); species with `w_k = 0` get 0.
-fn columns_for_tau(ray: &Ray, t0: f64, t1: f64, w: &[f64; 3], tau_tol: f64) -> ([f64; 3], [f64; 3]) {
-    if !longer(t0, t1) {
-        return ([0.0; 3], [0.0; 3]);
+/// The view ray's columns from the start of its part inside the atmosphere
+/// (`t_in`) to any distance t along it, from two look-ups in the Chapman
+/// tables and a cumulative ozone column ([`crate::sky::optical_depth`]): the
+/// difference of the columns to infinity at the two points, forward for a ray
+/// that leaves through the top, backward (rising) for one that hits the ground.
+struct ViewColumns {
+    tables: &'static ChapmanTables,
+    /// The ray's perigee coordinate at t = 0 (`r₀μ`).
+    s0: f64,
+    ground: bool,
+    /// `C∞` at `t_in` in the chosen direction.
+    start: Col2,
+    ozone: OzoneCumulative,
+}
+
+impl ViewColumns {
+    fn new(view: &Ray, t_in: f64, t_end: f64, end: RayEnd) -> ViewColumns {
+        let tables = chapman_tables();
+        let ground = end == RayEnd::Ground;
+        let s0 = view.r0 * view.mu;
+        let (h, r) = view.height_radius(t_in);
+        let h = h.clamp(0.0, ATMOSPHERE_TOP_M);
+        let mu = ((s0 + t_in) / r).clamp(-1.0, 1.0);
+        let rho = [rayleigh_density(h), mie_density(h)];
+        let start = column_to_infinity(tables, h, if ground { -mu } else { mu }, rho);
+        let line = Line::new(view.h0, view.mu);
+        ViewColumns {
+            tables,
+            s0,
+            ground,
+            start,
+            ozone: OzoneCumulative::new(line, s0 + t_in, s0 + t_end),
+        }
     }
-    let (cuts, n) = ray.cuts(t0, t1);
-    let (v, e, _) = integrate_pieces(
-        &mut |t| {
-            let d = densities(ray.height_radius(t).0);
-            [w[0] * d[0], w[1] * d[1], w[2] * d[2]]
-        },
-        &cuts[..n],
-        tau_tol,
-        0.0,
-        0.0,
-        400,
-    );
-    let div = |x: f64, k: usize| if w[k] > 0.0 { x / w[k] } else { 0.0 };
-    (
-        [div(v[0], 0), div(v[1], 1), div(v[2], 2)],
-        [div(e[0], 0), div(e[1], 1), div(e[2], 2)],
-    )
+
+    /// Columns `[Rayleigh, Mie, ozone]` from `t_in` to `t` and their error
+    /// bounds, m, given the height `h` and radius `r` at t and the densities `rho` there.
+    #[inline]
+    fn at(&self, t: f64, h: f64, r: f64, rho: [f64; 2]) -> ([f64; 3], [f64; 3]) {
+        let s = self.s0 + t;
+        let mu = (s / r).clamp(-1.0, 1.0);
+        let (v, e) = if self.ground {
+            let b = column_to_infinity(self.tables, h, -mu, rho);
+            (
+                [b.value[0] - self.start.value[0], b.value[1] - self.start.value[1]],
+                [b.error[0] + self.start.error[0], b.error[1] + self.start.error[1]],
+            )
+        } else {
+            let b = column_to_infinity(self.tables, h, mu, rho);
+            (
+                [self.start.value[0] - b.value[0], self.start.value[1] - b.value[1]],
+                [b.error[0] + self.start.error[0], b.error[1] + self.start.error[1]],
+            )
+        };
+        let oz = self.ozone.at(s, r);
+        ([v[0].max(0.0), v[1].max(0.0), oz], [e[0], e[1], ozone_error(oz)])
+    }
+}
+
+/// Columns `[Rayleigh, Mie, ozone]` from a point at height `h` (radius `r`,
+/// densities `rho`) towards the sun (direction cosine `mu_s`) to the top, with
+/// their error bounds, m; `None` if that ray hits the ground (the point is in
+/// the earth's shadow).
+#[inline]
+fn sun_columns(tables: &ChapmanTables, h: f64, mu_s: f64, rho: [f64; 2]) -> Option<([f64; 3], [f64; 3])> {
+    if Ray::new(h, mu_s).ground_distance().is_some() {
+        return None;
+    }
+    let c = column_to_top(tables, h, mu_s, rho);
+    let oz = Line::new(h, mu_s).ozone_to_top();
+    Some(([c.value[0], c.value[1], oz], [c.error[0], c.error[1], ozone_error(oz)]))
 }
 
 /// `a / b`, 0 where `b` is 0.
@@ -752,8 +817,6 @@ impl Default for AtmosphereParams {
 struct Resolved {
     /// Extinction per unit column of each species, per λ, m⁻¹.
     sigma: [Spectrum; 3],
-    /// Largest extinction coefficient of each species over λ, m⁻¹.
-    sigma_max: [f64; 3],
     /// Scattering per unit column, Rayleigh (per λ) and Mie (grey), m⁻¹.
     scat_r: Spectrum,
     scat_m: f64,
@@ -818,10 +881,8 @@ impl AtmosphereParams {
             [self.aerosol_density * MIE_EXTINCTION_PER_M; SPECTRAL_SAMPLES],
             std::array::from_fn(|i| self.ozone_density * c.ozone[i]),
         ];
-        let sigma_max = std::array::from_fn(|k| sigma[k].iter().fold(0.0_f64, |m, x| m.max(*x)));
         Resolved {
             sigma,
-            sigma_max,
             scat_r: std::array::from_fn(|i| self.air_density * c.rayleigh[i]),
             scat_m: self.aerosol_density * MIE_SCATTERING_PER_M,
         }
@@ -883,8 +944,8 @@ impl AtmosphereParams {
     /// direction `view_dir` (toward the sky, +Z up; normalised here; must be
     /// finite and non-zero, else NaN is returned), W·m⁻²·sr⁻¹·nm⁻¹, with its
     /// estimated absolute error per wavelength and the number of scattering
-    /// points evaluated (each costs two adaptive column integrations and 81
-    /// exponentials).
+    /// points evaluated (each costs a few Chapman-table look-ups, the ozone
+    /// closed form and 81 exponentials; see the module docs).
     ///
     /// The integral runs along the view ray to the top of the atmosphere or to
     /// the ground, where it stops: the ground's own (reflected) radiance is not
@@ -953,7 +1014,7 @@ impl AtmosphereParams {
         let s = self.sun_direction();
         let nu = v.dot(s).clamp(-1.0, 1.0);
         let view = self.observer_ray(v.z);
-        let Some((t_in, t_end, _)) = view.segment() else {
+        let Some((t_in, t_end, end)) = view.segment() else {
             return ([0.0; M], [0.0; M], 0);
         };
         if !longer(t_in, t_end) {
@@ -961,11 +1022,18 @@ impl AtmosphereParams {
         }
         let res = self.resolved();
         let e0 = solar_spectral_irradiance();
-        let sigma: [Vec<f64>; 3] = std::array::from_fn(|k| idx.iter().map(|&i| res.sigma[k][i]).collect());
-        let w_r: Vec<f64> = idx.iter().map(|&i| e0[i] * res.scat_r[i]).collect();
-        let w_m: Vec<f64> = idx.iter().map(|&i| e0[i] * res.scat_m).collect();
-        // Each species' optical depth in each of the two columns to 0.005 tol.
-        let tau_tol = 0.005 * tol;
+        // Per node wavelength (the first M/2 entries are used): extinction per
+        // unit column of each species, and E₀·β_s of Rayleigh and Mie.
+        let mut sigma = [[0.0; M]; 3];
+        let mut w_r = [0.0; M];
+        let mut w_m = [0.0; M];
+        for (j, &i) in idx.iter().enumerate().take(M / 2) {
+            for k in 0..3 {
+                sigma[k][j] = res.sigma[k][i];
+            }
+            w_r[j] = e0[i] * res.scat_r[i];
+            w_m[j] = e0[i] * res.scat_m;
+        }
         let o_s = view.r0 * s.z;
 
         let mut breaks = vec![t_in, t_end];
@@ -975,36 +1043,40 @@ impl AtmosphereParams {
         breaks.sort_by(f64::total_cmp);
         breaks.dedup();
 
-        let mut dtau_max = vec![0.0_f64; n];
+        let tables = chapman_tables();
+        let columns = ViewColumns::new(&view, t_in, t_end, end);
+        // Largest error bound of each species' total column over the points.
+        let mut column_error = [0.0_f64; 3];
         let mut f = |t: f64| -> [f64; M] {
             let (h, r) = view.height_radius(t);
             let h = h.clamp(0.0, ATMOSPHERE_TOP_M);
             let mu_s = ((o_s + t * nu) / r).clamp(-1.0, 1.0);
-            let sun = Ray::new(h, mu_s);
-            let Some((_, t_sun, RayEnd::Top)) = sun.segment() else {
+            let rho_r = exp_neg(h / RAYLEIGH_SCALE_HEIGHT_M);
+            let rho_m = exp_neg(h / MIE_SCALE_HEIGHT_M);
+            let Some((cs, es)) = sun_columns(tables, h, mu_s, [rho_r, rho_m]) else {
                 return [0.0; M];
             };
-            let (cs, es) = columns_for_tau(&sun, 0.0, t_sun, &res.sigma_max, tau_tol);
-            let (cv, ev) = columns_for_tau(&view, t_in, t, &res.sigma_max, tau_tol);
+            let (cv, ev) = columns.at(t, h, r, [rho_r, rho_m]);
             let d = [cs[0] + cv[0], cs[1] + cv[1], cs[2] + cv[2]];
-            let de = [es[0] + ev[0], es[1] + ev[1], es[2] + ev[2]];
-            let rho_r = rayleigh_density(h);
-            let rho_m = mie_density(h);
+            for k in 0..3 {
+                column_error[k] = column_error[k].max(es[k] + ev[k]);
+            }
+            let mut trans = [0.0; M];
+            transmittances(&sigma, d, &mut trans);
             let mut out = [0.0; M];
-            for i in 0..n {
-                let tau = sigma[0][i] * d[0] + sigma[1][i] * d[1] + sigma[2][i] * d[2];
-                let dtau = sigma[0][i] * de[0] + sigma[1][i] * de[1] + sigma[2][i] * de[2];
-                dtau_max[i] = dtau_max[i].max(dtau);
-                let t = (-tau).exp();
-                out[i] = t * w_r[i] * rho_r;
-                out[n + i] = t * w_m[i] * rho_m;
+            for i in 0..M / 2 {
+                out[i] = trans[i] * w_r[i] * rho_r;
+                out[M / 2 + i] = trans[i] * w_m[i] * rho_m;
             }
             out
         };
         let (value, mut error, evaluations) = integrate_pieces(&mut f, &breaks, 0.0, tol, 1e-2, 2000);
-        for k in 0..2 {
-            for i in 0..n {
-                error[k * n + i] += value[k * n + i].abs() * (dtau_max[i] + 64.0 * f64::EPSILON);
+        // The columns' error bounds, as optical depth: L·max δτ bounds |δL|
+        // (|e^{−τ−δτ} − e^{−τ}| ≤ e^{−τ}·δτ), plus rounding.
+        for i in 0..n {
+            let dtau = sigma[0][i] * column_error[0] + sigma[1][i] * column_error[1] + sigma[2][i] * column_error[2];
+            for k in 0..2 {
+                error[k * n + i] += value[k * n + i].abs() * (dtau + 64.0 * f64::EPSILON);
             }
         }
         (value, error, evaluations)
@@ -1036,7 +1108,7 @@ impl AtmosphereParams {
             std::array::from_fn(|i| e0[i] * res.scat_r[i]),
             std::array::from_fn(|i| e0[i] * res.scat_m),
         ];
-        let vars = [&res.sigma[0], &res.sigma[2]];
+        let expander = band_expander(bands, self.air_density > 0.0, self.ozone_density > 0.0);
         let mut parts = [[0.0; SPECTRAL_SAMPLES]; 2];
         let mut errors = [[0.0; SPECTRAL_SAMPLES]; 2];
         for k in 0..2 {
@@ -1045,7 +1117,7 @@ impl AtmosphereParams {
             }
             let g: Vec<f64> = (0..n).map(|j| safe_div(value[k * n + j], carrier[k][idx[j]])).collect();
             let ge: Vec<f64> = (0..n).map(|j| safe_div(error[k * n + j], carrier[k][idx[j]])).collect();
-            let gs = bands.expand(&vars, &g);
+            let gs = expander.apply(&g);
             // Errors: the largest relative node error applied to the whole spectrum.
             let rel = (0..n).fold(0.0f64, |m, j| if g[j] > 0.0 { m.max(ge[j] / g[j]) } else { m });
             for i in 0..SPECTRAL_SAMPLES {
@@ -1147,20 +1219,21 @@ impl AtmosphereParams {
         let tol = sanitize_tol(rel_tol, 1e-4);
         let view = self.observer_ray(v.z);
         let zero = [0.0; SPECTRAL_SAMPLES];
-        let Some((t_in, t_end, _)) = view.segment() else {
+        let Some((t_in, t_end, end)) = view.segment() else {
             return (zero, zero, 0);
         };
         if !longer(t_in, t_end) {
             return (zero, zero, 0);
         }
         let res = self.resolved();
-        let tau_tol = 0.01 * tol;
         let (cuts, n) = view.cuts(t_in, t_end);
+        let columns = ViewColumns::new(&view, t_in, t_end, end);
         let mut dtau_max = [0.0_f64; SPECTRAL_SAMPLES];
         let mut f = |t: f64| -> Spectrum {
-            let h = view.height_radius(t).0.max(0.0);
-            let (cv, ev) = columns_for_tau(&view, t_in, t, &res.sigma_max, tau_tol);
+            let (h, r) = view.height_radius(t);
+            let h = h.clamp(0.0, ATMOSPHERE_TOP_M);
             let (rho_r, rho_m) = (rayleigh_density(h), mie_density(h));
+            let (cv, ev) = columns.at(t, h, r, [rho_r, rho_m]);
             std::array::from_fn(|i| {
                 let tau = res.sigma[0][i] * cv[0] + res.sigma[1][i] * cv[1] + res.sigma[2][i] * cv[2];
                 let dtau = res.sigma[0][i] * ev[0] + res.sigma[1][i] * ev[1] + res.sigma[2][i] * ev[2];
@@ -1174,6 +1247,23 @@ impl AtmosphereParams {
         }
         (value, error, evaluations)
     }
+}
+
+/// The reconstruction of [`Bands::expand`] with the Rayleigh and ozone
+/// extinction spectra as variables (a species switched off is constant). It
+/// depends on the density multipliers only through whether they are zero
+/// (the variables are rescaled to [−1, 1]), so it is built once per case.
+fn band_expander(bands: Bands, air: bool, ozone: bool) -> &'static Expander {
+    static CACHE: [OnceLock<Expander>; 8] = [const { OnceLock::new() }; 8];
+    let b = match bands {
+        Bands::Nodes9 => 0,
+        Bands::Nodes17 => 1,
+    };
+    CACHE[4 * b + 2 * usize::from(air) + usize::from(ozone)].get_or_init(|| {
+        let c = &*COEFFICIENTS;
+        let off = [0.0; SPECTRAL_SAMPLES];
+        bands.expander(&[if air { &c.rayleigh } else { &off }, if ozone { &c.ozone } else { &off }])
+    })
 }
 
 /// Pushes the distances in `(t0, t1)` where the view ray crosses the

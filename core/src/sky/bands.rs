@@ -84,12 +84,19 @@ impl Bands {
     /// [`Self::nodes`]. `vars[v]` are the spectral variables (e.g. extinction
     /// coefficients, any unit) on the full grid; constant ones are ignored.
     /// `ln g` is fitted when every node value is positive and finite, `g`
-    /// itself otherwise (all zero gives zero).
+    /// itself otherwise (all zero gives zero). Same as
+    /// `self.expander(vars).apply(g_nodes)`; build the [`Expander`] once when
+    /// the variables do not change.
     pub fn expand(self, vars: &[&Spectrum], g_nodes: &[f64]) -> Spectrum {
-        debug_assert_eq!(g_nodes.len(), self.len());
-        if g_nodes.iter().all(|g| *g == 0.0) {
-            return [0.0; SPECTRAL_SAMPLES];
-        }
+        self.expander(vars).apply(g_nodes)
+    }
+
+    /// The least-squares fit of [`Self::expand`] as a linear map from the
+    /// node values (of `ln g`, or of `g`) to all 81 wavelengths: the fit's
+    /// coefficients are `(AᵀA)⁻¹Aᵀy` for the node design matrix A, so the
+    /// reconstruction is `B(AᵀA)⁻¹Aᵀ y` with B the design matrix on the full
+    /// grid, precomputed here once.
+    pub fn expander(self, vars: &[&Spectrum]) -> Expander {
         // Scaled variables in [−1, 1]; constant ones dropped.
         let mut scaled: Vec<Spectrum> = Vec::with_capacity(2);
         for v in vars.iter().take(2) {
@@ -112,18 +119,19 @@ impl Bands {
             let y = scaled.get(1).map_or(0.0, |s| s[i]);
             exps.iter().map(|&(a, b)| x.powi(a as i32) * y.powi(b as i32)).collect()
         };
-        let log = g_nodes.iter().all(|g| g.is_finite() && *g > 0.0);
-        let y: Vec<f64> = g_nodes.iter().map(|g| if log { g.ln() } else { *g }).collect();
+        let nodes: Vec<usize> = self.nodes().collect();
+        let n = nodes.len();
         let p = exps.len();
-        // Normal equations AᵀA c = Aᵀy (p ≤ 10, well scaled), Gaussian elimination with pivoting.
-        let mut m = vec![vec![0.0; p + 1]; p];
-        for (row, node) in self.nodes().enumerate() {
+        // (AᵀA)⁻¹Aᵀ by Gauss–Jordan elimination with pivoting on [AᵀA | Aᵀ]
+        // (p ≤ 10, well scaled).
+        let mut m = vec![vec![0.0; p + n]; p];
+        for (row, &node) in nodes.iter().enumerate() {
             let b = basis(node);
             for r in 0..p {
                 for c in 0..p {
                     m[r][c] += b[r] * b[c];
                 }
-                m[r][p] += b[r] * y[row];
+                m[r][p + row] += b[r];
             }
         }
         for col in 0..p {
@@ -133,25 +141,63 @@ impl Bands {
             if d.abs() < 1e-300 {
                 continue;
             }
+            for c in col..p + n {
+                m[col][c] /= d;
+            }
             for r in 0..p {
                 if r != col {
-                    let f = m[r][col] / d;
+                    let f = m[r][col];
                     if f != 0.0 {
-                        for c in col..=p {
+                        for c in col..p + n {
                             m[r][c] -= f * m[col][c];
                         }
                     }
                 }
             }
         }
-        let coef: Vec<f64> = (0..p).map(|r| if m[r][r] != 0.0 { m[r][p] / m[r][r] } else { 0.0 }).collect();
+        // Map row i: Σ_r basis_r(i) · [(AᵀA)⁻¹Aᵀ]_r.
+        let mut map = vec![0.0; SPECTRAL_SAMPLES * n];
+        for i in 0..SPECTRAL_SAMPLES {
+            let b = basis(i);
+            for j in 0..n {
+                map[i * n + j] = (0..p).map(|r| if m[r][r] != 0.0 { b[r] * m[r][p + j] } else { 0.0 }).sum();
+            }
+        }
+        Expander { bands: self, map }
+    }
+}
+
+/// The reconstruction of [`Bands::expand`] for fixed spectral variables: a
+/// precomputed 81 × (node count) linear map.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Expander {
+    bands: Bands,
+    /// Row-major, 81 rows.
+    map: Vec<f64>,
+}
+
+impl Expander {
+    /// The band set.
+    pub fn bands(&self) -> Bands {
+        self.bands
+    }
+
+    /// Reconstructs `g` at all 81 wavelengths from its node values (see [`Bands::expand`]).
+    pub fn apply(&self, g_nodes: &[f64]) -> Spectrum {
+        let n = self.bands.len();
+        debug_assert_eq!(g_nodes.len(), n);
+        if g_nodes.iter().all(|g| *g == 0.0) {
+            return [0.0; SPECTRAL_SAMPLES];
+        }
+        let log = g_nodes.iter().all(|g| g.is_finite() && *g > 0.0);
+        let y: Vec<f64> = g_nodes.iter().map(|g| if log { g.ln() } else { *g }).collect();
         let mut out = [0.0; SPECTRAL_SAMPLES];
         for (i, o) in out.iter_mut().enumerate() {
-            let v: f64 = basis(i).iter().zip(&coef).map(|(b, c)| b * c).sum();
+            let v: f64 = self.map[i * n..(i + 1) * n].iter().zip(&y).map(|(m, y)| m * y).sum();
             *o = if log { v.exp() } else { v };
         }
         // The node values themselves are exact: keep them.
-        for (k, node) in self.nodes().enumerate() {
+        for (k, node) in self.bands.nodes().enumerate() {
             out[node] = g_nodes[k];
         }
         out

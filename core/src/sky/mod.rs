@@ -6,6 +6,7 @@
 pub mod atmosphere;
 pub mod bands;
 pub mod klassen;
+pub mod optical_depth;
 pub mod texture;
 
 use crate::report::{Plan, Timing};
