@@ -345,6 +345,9 @@ struct Table {
     bound_deg: f64,
     /// Upper bound of the interpolated candela over all directions.
     max_interp: f64,
+    /// Per cell `[i_h * (n_v − 1) + j_v]`: whether the unclamped interpolant
+    /// may change sign inside it (its interval bound straddles 0).
+    sign_cells: Vec<bool>,
     /// Largest table value.
     max_value: f64,
     /// Extra factor Cycles applies on top of `candela` (2019 file generation type).
@@ -981,11 +984,13 @@ impl Table {
             wrap_vhigh,
             bound_deg: 0.0,
             max_interp: 0.0,
+            sign_cells: Vec::new(),
             max_value,
             cycles_extra,
         };
         t.bound_deg = t.compute_bound();
         t.max_interp = t.compute_max();
+        t.sign_cells = t.compute_sign_cells();
         t
     }
 
@@ -1138,6 +1143,45 @@ impl Table {
         bound.min(self.bound_deg)
     }
 
+    /// For every cell, whether the interval Catmull-Rom bound of the unclamped
+    /// interpolant contains both signs (else it is > 0 or ≤ 0 throughout).
+    fn compute_sign_cells(&self) -> Vec<bool> {
+        let (nh, nv) = (self.h.len(), self.v.len());
+        let mut out = vec![true; nh.saturating_sub(1) * nv.saturating_sub(1)];
+        for j in 0..nv.saturating_sub(1) {
+            let vi = self.v_idx(j);
+            let cols: Vec<(f64, f64)> = (0..nh)
+                .map(|k| {
+                    cr_range(vi.map(|r| {
+                        let x = self.at(k, r);
+                        (x, x)
+                    }))
+                })
+                .collect();
+            for i in 0..nh.saturating_sub(1) {
+                let (lo, hi) = cr_range(self.h_idx(i).map(|k| cols[k]));
+                out[i * (nv - 1) + j] = lo <= 0.0 && hi > 0.0;
+            }
+        }
+        out
+    }
+
+    /// Whether the unclamped interpolant may change sign in the cell holding
+    /// Cycles angles (v, h) in degrees (true where unsure or out of range).
+    fn may_change_sign(&self, v_deg: f64, h_deg: f64) -> bool {
+        let (nh, nv) = (self.h.len(), self.v.len());
+        if nh < 2 || nv < 2 {
+            return true;
+        }
+        let (v0, v1, h0, h1) = (self.v[0], self.v[nv - 1], self.h[0], self.h[nh - 1]);
+        if !(v_deg >= v0 && v_deg <= v1 && h_deg >= h0 && h_deg <= h1) {
+            return true;
+        }
+        let (j, _) = Self::locate(&self.v, v_deg);
+        let (i, _) = Self::locate(&self.h, h_deg);
+        self.sign_cells.get(i * (nv - 1) + j).copied().unwrap_or(true)
+    }
+
     /// Guaranteed upper bound of `eval` (cell-wise interval Catmull-Rom).
     fn compute_max(&self) -> f64 {
         let (nh, nv) = (self.h.len(), self.v.len());
@@ -1204,6 +1248,17 @@ impl IesProfile {
         match cycles_angles(dir_local) {
             Some((v, h)) => self.table.eval_unclamped(v, h),
             None => 0.0,
+        }
+    }
+
+    /// Whether [`IesProfile::candela_unclamped`] may change sign in the table
+    /// cell holding `dir_local` (from an interval bound of the cell's
+    /// Catmull-Rom; true where unsure). Cells that are positive or ≤ 0
+    /// throughout need no search for sign changes.
+    pub fn may_change_sign(&self, dir_local: DVec3) -> bool {
+        match cycles_angles(dir_local) {
+            Some((v, h)) => self.table.may_change_sign(v, h),
+            None => true,
         }
     }
 

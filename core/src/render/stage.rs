@@ -702,6 +702,11 @@ impl<const C: usize> StageLights<C> {
                     if u1.partial_cmp(&u0) != Some(std::cmp::Ordering::Greater) {
                         continue;
                     }
+                    // Cells whose interval bound is one-signed need no search.
+                    let mid = 0.5 * (u0 + u1);
+                    if !profile.may_change_sign(l.frame.to_local(n_hat * mid.cos() + d * mid.sin())) {
+                        continue;
+                    }
                     const SAMPLES: usize = 8;
                     let mut prev = (u0, signed(u0));
                     for k in 1..=SAMPLES {
