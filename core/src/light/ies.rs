@@ -1403,6 +1403,63 @@ mod tests {
 
     const DOWN: &str = "IESNA:LM-63-2002\n[TEST] t\nTILT=NONE\n1 1000 1 4 1 1 2 0 0 0\n1 1 10\n0 30 60 90\n0\n100 80 0 0\n";
 
+    /// Random sparse tables (0–360° with wrap, and 0–90° without): wherever
+    /// a cell is marked one-signed, the unclamped interpolant sampled densely
+    /// inside it has one sign; and the per-segment vertical bounds hold every
+    /// lit sample.
+    #[test]
+    fn sign_cells_and_segment_bounds_hold_on_random_tables() {
+        let mut seed = 11u64;
+        let mut next = || {
+            seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            ((seed >> 11) as f64) / ((1u64 << 53) as f64)
+        };
+        let mut one_signed = 0;
+        for case in 0..40 {
+            let h: Vec<f64> = if case % 2 == 0 {
+                (0..=12).map(|k| 30.0 * k as f64).collect()
+            } else {
+                (0..=6).map(|k| 15.0 * k as f64).collect()
+            };
+            let v: Vec<f64> = (0..=18).map(|k| 5.0 * k as f64).collect();
+            let mut rows: Vec<Vec<f64>> = h
+                .iter()
+                .map(|_| v.iter().map(|_| if next() < 0.4 { 0.0 } else { 1000.0 * next() }).collect())
+                .collect();
+            if case % 2 == 0 {
+                // 0° and 360° are the same plane.
+                let first = rows[0].clone();
+                *rows.last_mut().unwrap() = first;
+            }
+            let t = Table::new(h.clone(), v.clone(), rows, 1.0);
+            let nv = v.len();
+            for i in 0..h.len() - 1 {
+                let bound = t.segment_bound(i);
+                for j in 0..nv - 1 {
+                    let marked = t.sign_cells[i * (nv - 1) + j];
+                    let (mut pos, mut neg) = (false, false);
+                    for a in 1..16 {
+                        for b in 1..16 {
+                            let vd = v[j] + (v[j + 1] - v[j]) * a as f64 / 16.0;
+                            let hd = h[i] + (h[i + 1] - h[i]) * b as f64 / 16.0;
+                            let u = t.eval_unclamped(vd, hd);
+                            pos |= u > 0.0;
+                            neg |= u <= 0.0;
+                            if u > 0.0 {
+                                assert!(vd <= bound + 1e-9, "case {case}: lit at v={vd} beyond the segment bound {bound}");
+                            }
+                        }
+                    }
+                    if !marked {
+                        one_signed += 1;
+                        assert!(!(pos && neg), "case {case}: cell ({i}, {j}) marked one-signed but changes sign");
+                    }
+                }
+            }
+        }
+        assert!(one_signed > 100, "{one_signed} one-signed cells");
+    }
+
     #[test]
     fn weights_are_catmull_rom() {
         for &x in &[0.0, 0.1, 0.37, 0.5, 0.9, 1.0] {
