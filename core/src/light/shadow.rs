@@ -876,6 +876,19 @@ mod tests {
     }
 
     /// The visibility grid never contradicts a shadow ray, and decides most points.
+    /// A BVH over every triangle of `meshes`.
+    fn bvh_of(meshes: &[IndexedMesh<'_>]) -> Bvh {
+        let tris = meshes
+            .iter()
+            .flat_map(|m| {
+                m.triangles
+                    .iter()
+                    .map(|t| Triangle::new(m.positions[t[0] as usize], m.positions[t[1] as usize], m.positions[t[2] as usize]))
+            })
+            .collect();
+        Bvh::build(tris)
+    }
+
     #[test]
     fn visibility_grid_agrees_with_shadow_rays() {
         let (p1, t1) = cube(DVec3::new(0.0, 0.0, 1.0), 0.5);
@@ -929,17 +942,7 @@ mod tests {
                 triangles: &t4,
             },
         ];
-        let mut tris = Vec::new();
-        for m in &meshes {
-            for t in m.triangles {
-                tris.push(Triangle::new(
-                    m.positions[t[0] as usize],
-                    m.positions[t[1] as usize],
-                    m.positions[t[2] as usize],
-                ));
-            }
-        }
-        let bvh = Bvh::build(tris);
+        let bvh = bvh_of(&meshes);
         let light = DVec3::new(0.1, -0.2, 4.0);
         let axis = (DVec3::new(0.2, 0.1, 0.0) - light).normalize();
         let x = axis.any_orthonormal_vector();
@@ -1002,17 +1005,7 @@ mod tests {
                 triangles: &t3,
             },
         ];
-        let mut tris = Vec::new();
-        for m in &meshes {
-            for t in m.triangles {
-                tris.push(Triangle::new(
-                    m.positions[t[0] as usize],
-                    m.positions[t[1] as usize],
-                    m.positions[t[2] as usize],
-                ));
-            }
-        }
-        let bvh = Bvh::build(tris);
+        let bvh = bvh_of(&meshes);
         for projector in [
             Projector::Point(DVec3::new(0.1, -0.2, 4.0)),
             Projector::Directional(DVec3::new(0.2, 0.1, 1.0).normalize()),
