@@ -1591,21 +1591,7 @@ mod tests {
                         spectrum::spectrum_to_xyz(&model.sky_radiance(d, 1e-7).0)
                     })
                     .collect();
-                let ymax = exact.iter().fold(0.0f64, |m, c| m.max(c[1]));
-                let (mut worst_y, mut worst_uv, mut dark) = (0.0f64, 0.0f64, 0usize);
-                for p in 0..w * h {
-                    let xyz = spectrum::rec709_to_xyz(t.rgb[p].map(f64::from));
-                    let x = exact[p];
-                    if x[1] <= 1e-4 * ymax {
-                        dark += 1;
-                        worst_y = worst_y.max((xyz[1] - x[1]).abs() / (1e-4 * ymax).max(1e-300));
-                        continue;
-                    }
-                    worst_y = worst_y.max((xyz[1] - x[1]).abs() / x[1]);
-                    let (u, v) = uv(xyz);
-                    let (ur, vr) = uv(x);
-                    worst_uv = worst_uv.max(((u - ur).powi(2) + (v - vr).powi(2)).sqrt());
-                }
+                let (worst_y, worst_uv, dark) = worst_pixel_errors(&t.rgb, &exact);
                 eprintln!(
                     "every pixel {name:<10} sun {e:>4}°: {} ({} evals): worst luminance {worst_y:.2e}, Δu′v′ {worst_uv:.2e}, {dark} dark pixels",
                     t.colour.path, t.evaluations
@@ -1614,6 +1600,27 @@ mod tests {
                 assert!(worst_uv <= 1e-3, "{name} {e}°: Δu′v′ {worst_uv:.2e}");
             }
         }
+    }
+
+    /// Worst luminance error and Δu′v′ of a texture against per-pixel XYZ;
+    /// pixels darker than 1e-4 of the brightest are judged in absolute terms
+    /// against that floor (and counted, third value).
+    fn worst_pixel_errors(rgb: &[[f32; 3]], exact: &[[f64; 3]]) -> (f64, f64, usize) {
+        let ymax = exact.iter().fold(0.0f64, |m, c| m.max(c[1]));
+        let (mut worst_y, mut worst_uv, mut dark) = (0.0f64, 0.0f64, 0usize);
+        for (px, x) in rgb.iter().zip(exact) {
+            let xyz = spectrum::rec709_to_xyz(px.map(f64::from));
+            if x[1] <= 1e-4 * ymax {
+                dark += 1;
+                worst_y = worst_y.max((xyz[1] - x[1]).abs() / (1e-4 * ymax).max(1e-300));
+                continue;
+            }
+            worst_y = worst_y.max((xyz[1] - x[1]).abs() / x[1]);
+            let (u, v) = uv(xyz);
+            let (ur, vr) = uv(*x);
+            worst_uv = worst_uv.max(((u - ur).powi(2) + (v - vr).powi(2)).sqrt());
+        }
+        (worst_y, worst_uv, dark)
     }
 
     /// The acceptance check at full size: every pixel of the
@@ -1643,20 +1650,7 @@ mod tests {
                     spectrum::spectrum_to_xyz(&atm.sky_radiance(d, 1e-7).0)
                 })
                 .collect();
-            let ymax = exact.iter().fold(0.0f64, |m, c| m.max(c[1]));
-            let (mut worst_y, mut worst_uv) = (0.0f64, 0.0f64);
-            for p in 0..w * h {
-                let xyz = spectrum::rec709_to_xyz(t.rgb[p].map(f64::from));
-                let x = exact[p];
-                if x[1] <= 1e-4 * ymax {
-                    worst_y = worst_y.max((xyz[1] - x[1]).abs() / (1e-4 * ymax).max(1e-300));
-                    continue;
-                }
-                worst_y = worst_y.max((xyz[1] - x[1]).abs() / x[1]);
-                let (u, v) = uv(xyz);
-                let (ur, vr) = uv(x);
-                worst_uv = worst_uv.max(((u - ur).powi(2) + (v - vr).powi(2)).sqrt());
-            }
+            let (worst_y, worst_uv, _) = worst_pixel_errors(&t.rgb, &exact);
             eprintln!(
                 "2048 × 1024, sun {e:>4}°: {} ({} evals): worst luminance {worst_y:.2e}, Δu′v′ {worst_uv:.2e}",
                 t.colour.path, t.evaluations
