@@ -1575,23 +1575,7 @@ mod tests {
             let kl = klassen(e);
             let models: [(&str, &dyn SkyModel); 2] = [("atmosphere", &atm), ("klassen", &kl)];
             for (name, model) in models {
-                let t = build_world_texture(
-                    model,
-                    &TextureSettings {
-                        width: w,
-                        tolerance: tol,
-                        sun_disc: false,
-                    },
-                );
-                let h = t.height;
-                let exact: Vec<[f64; 3]> = (0..w * h)
-                    .into_par_iter()
-                    .map(|p| {
-                        let d = equirect_direction((p % w) as f64 + 0.5, (p / w) as f64 + 0.5, w, h);
-                        spectrum::spectrum_to_xyz(&model.sky_radiance(d, 1e-7).0)
-                    })
-                    .collect();
-                let (worst_y, worst_uv, dark) = worst_pixel_errors(&t.rgb, &exact);
+                let (t, worst_y, worst_uv, dark) = texture_against_direct(model, w, tol);
                 eprintln!(
                     "every pixel {name:<10} sun {e:>4}°: {} ({} evals): worst luminance {worst_y:.2e}, Δu′v′ {worst_uv:.2e}, {dark} dark pixels",
                     t.colour.path, t.evaluations
@@ -1600,6 +1584,30 @@ mod tests {
                 assert!(worst_uv <= 1e-3, "{name} {e}°: Δu′v′ {worst_uv:.2e}");
             }
         }
+    }
+
+    /// The texture of `model` at `width` and `tolerance` (no sun disc) and its
+    /// [`worst_pixel_errors`] against the model evaluated at every pixel
+    /// centre to 1e-7.
+    fn texture_against_direct(model: &dyn SkyModel, width: usize, tolerance: f64) -> (WorldTexture, f64, f64, usize) {
+        let t = build_world_texture(
+            model,
+            &TextureSettings {
+                width,
+                tolerance,
+                sun_disc: false,
+            },
+        );
+        let (w, h) = (width, t.height);
+        let exact: Vec<[f64; 3]> = (0..w * h)
+            .into_par_iter()
+            .map(|p| {
+                let d = equirect_direction((p % w) as f64 + 0.5, (p / w) as f64 + 0.5, w, h);
+                spectrum::spectrum_to_xyz(&model.sky_radiance(d, 1e-7).0)
+            })
+            .collect();
+        let (worst_y, worst_uv, dark) = worst_pixel_errors(&t.rgb, &exact);
+        (t, worst_y, worst_uv, dark)
     }
 
     /// Worst luminance error and Δu′v′ of a texture against per-pixel XYZ;
@@ -1634,23 +1642,7 @@ mod tests {
         let w = 2048;
         for e in ELEVATIONS {
             let atm = atmosphere(e);
-            let t = build_world_texture(
-                &atm,
-                &TextureSettings {
-                    width: w,
-                    tolerance: 1e-3,
-                    sun_disc: false,
-                },
-            );
-            let h = t.height;
-            let exact: Vec<[f64; 3]> = (0..w * h)
-                .into_par_iter()
-                .map(|p| {
-                    let d = equirect_direction((p % w) as f64 + 0.5, (p / w) as f64 + 0.5, w, h);
-                    spectrum::spectrum_to_xyz(&atm.sky_radiance(d, 1e-7).0)
-                })
-                .collect();
-            let (worst_y, worst_uv, _) = worst_pixel_errors(&t.rgb, &exact);
+            let (t, worst_y, worst_uv, _) = texture_against_direct(&atm, w, 1e-3);
             eprintln!(
                 "2048 × 1024, sun {e:>4}°: {} ({} evals): worst luminance {worst_y:.2e}, Δu′v′ {worst_uv:.2e}",
                 t.colour.path, t.evaluations
