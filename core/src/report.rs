@@ -110,6 +110,11 @@ pub struct Stats {
     pub triangles: u64,
     /// Threads used.
     pub threads: usize,
+    /// Image positions `[x, y]` (pixel `i` spans `[i, i+1)`, rows from the top)
+    /// of the point lights in front of a perspective camera, possibly outside
+    /// the frame. The in-scatter has an integrable 1/r peak there.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub light_images: Vec<[f64; 2]>,
 }
 
 /// The whole report.

@@ -8,19 +8,50 @@
 //! `t = x/(2·width) + 1/2`, for `|x| ≤ width`, applied along x and y.
 //!
 //! Tyndall's images are smooth except where a view ray's surface changes
-//! (silhouettes). A pixel is treated as a silhouette when a neighbour within
+//! (silhouettes), at sharp beam and shadow edges, and at the image of a point
+//! light (an integrable 1/r peak). A pixel is flagged when a neighbour within
 //! the filter's reach sees another surface and the two centre samples differ
-//! by more than the tolerance. There, pixels are integrated against the
-//! filter with an `n × n` midpoint rule, `n` doubling from 4 until two
-//! successive estimates agree to the tolerance (or `n = 16`); the difference
-//! is the error estimate, reported separately (`edge_max_abs`,
-//! `edge_pixels_not_converged`): a step inside a pixel converges only as
-//! O(1/n), so silhouettes are the one place the tolerance may not be met.
-//! Elsewhere the centre sample stands for the filtered value; for a smooth
-//! image the filter changes it by `(σ²/2)·∇²L + O(σ⁴)` with `σ²` the filter's
-//! per-axis variance, and that term, from the discrete Laplacian of the
-//! centre samples, is added to the pixel's error estimate.
+//! by more than the tolerance, or when the filter's second-order term below
+//! exceeds it. Elsewhere the centre sample stands for the filtered value; for
+//! a smooth image the filter changes it by `(σ²/2)·∇²L + O(σ⁴)` with `σ²` the
+//! filter's per-axis variance, and that term, from the discrete Laplacian of
+//! the centre samples, is added to the pixel's error estimate.
+//!
+//! Flagged pixels are integrated against the window on one **shared adaptive
+//! lattice** ([`filter_adaptive`]): windows of neighbouring pixels overlap
+//! (3 × 3 px each), so every view ray is traced once and feeds every window
+//! that holds it. Root cells are ½ px squares whose corners are the lattice
+//! points `pixel centre + (a/2, b/2)`; a window is exactly 6 × 6 root cells.
+//! On each cell the image is interpolated bilinearly from its corners and
+//! integrated exactly against the window (tabulated moments of `w`, see
+//! [`WindowMoments`]), so the weights of a window sum to `(∫w)²` however it is
+//! refined, and a constant or linear image is exact. A cell is split into
+//! four while it is *not flat* (its corners' in-scatter spread exceeds ¼ of the tolerance of the brightest window that
+//! holds it, or their transmittance spread ¼ of the tolerance) and some
+//! pixel whose window holds it has not converged; cells stop at 1/32 px,
+//! except the cells at a point light's image, which go on to 1/2048 px (the
+//! graded mesh that resolves the 1/r peak). A pixel's error estimate is
+//!
+//! - the sum over the cells split in the last round of the absolute change
+//!   each made to the pixel's estimate (an absolute sum: a step crossing a
+//!   window changes cells with both signs, and a signed sum let pixels stop
+//!   early by cancellation; the bilinear rule has no Euler–Maclaurin
+//!   cancellation to lose), plus
+//! - twice the changes from cells that could not be refined further (finest
+//!   size), carried from the round they were made (across a step the error
+//!   only halves per split), plus
+//! - for every flat cell, its corners' spread times its share of the window
+//!   (an unrefined flat cell cannot be off by more than that unless a feature
+//!   hides between its corners), plus
+//! - the samples' own error, filtered.
+//!
+//! Where a step crosses a pixel the estimate converges as O(h) only: hard
+//! silhouettes are the one place the tolerance may not be met at 1/32 px,
+//! and those pixels are counted (`edge_pixels_not_converged`). The window is
+//! normalised by the rule's own weight sum, so a constant image is exact.
 
+use rayon::prelude::*;
+use rustc_hash::FxHashMap as HashMap;
 use serde::{Deserialize, Serialize};
 use std::f64::consts::PI;
 
@@ -101,6 +132,659 @@ impl PixelFilter {
     }
 }
 
+/// What the adaptive filter integral needs of a view-ray sample.
+pub(crate) trait FilterSample: Copy + Default + Send + Sync {
+    /// In-scatter RGB: the quantity whose error is controlled.
+    fn radiance(&self) -> [f64; 3];
+    /// View transmittance RGB (0..1), held flat to the tolerance in absolute terms.
+    fn transmittance(&self) -> [f64; 3];
+    /// The sample's own error estimate, RGB.
+    fn own_error(&self) -> [f64; 3];
+    /// `self += weight · other` for every filtered quantity.
+    fn add_weighted(&mut self, other: &Self, weight: f64);
+}
+
+/// Lattice units per pixel: a lattice point is `pixel centre + (k, l)/UNITS_PER_PX`.
+const UNITS_PER_PX: i64 = 4096;
+/// Root cell side, units (½ px).
+const ROOT_CELL: i64 = UNITS_PER_PX / 2;
+/// Smallest cell side away from a light's image, units (1/32 px).
+const MIN_CELL: i64 = UNITS_PER_PX / 32;
+/// Smallest cell side at a point light's image, units (1/2048 px).
+const MIN_CELL_AT_LIGHT: i64 = 2;
+/// The error left in a cell split for the last time is taken as this many
+/// times the change the split made. Across a step the error only halves per
+/// split (O(h)), so the finer error equals the change: a factor 1 has no
+/// margin (a step along a lattice line was underestimated by 0.6 %).
+const TERMINAL_FACTOR: f64 = 2.0;
+/// A cell is at a light's image (never flat, refined down to
+/// `MIN_CELL_AT_LIGHT`) when the image lies within this many of its own sizes
+/// of it: a mesh graded towards the 1/r peak.
+const AT_LIGHT_REACH: i64 = 3;
+/// A cell is flat when its corners spread by at most this fraction of the tolerance.
+const FLAT_FRACTION: f64 = 0.25;
+/// Flagged pixels are grouped into tiles of this many pixels a side; each tile
+/// has its own lattice (shared points at tile borders are traced twice), which
+/// bounds memory and gives the threads independent work.
+const TILE_PX: usize = 16;
+
+/// One flagged pixel after [`filter_adaptive`].
+pub(crate) struct FilteredPixel<S> {
+    /// Index `y·width + x` in the image.
+    pub index: usize,
+    /// Filtered sample (accumulated quantities only; depth, hit and surface stay default).
+    pub value: S,
+    /// Error estimate of the filtered in-scatter, RGB, absolute.
+    pub error: [f64; 3],
+}
+
+/// What [`filter_adaptive`] needs about the image.
+pub(crate) struct AdaptiveFilterJob<'a> {
+    pub filter: PixelFilter,
+    pub width: usize,
+    pub height: usize,
+    /// Relative tolerance of the filtered in-scatter (absolute for transmittance).
+    pub tolerance: f64,
+    /// Per in-image pixel index: the brightest centre sample its window sees
+    /// (the scale its error is measured against).
+    pub window_scale: &'a (dyn Fn(usize) -> f64 + Sync),
+    /// Images of point lights, pixel coordinates (pixel `i` spans `[i, i+1)`).
+    pub light_images: &'a [(f64, f64)],
+}
+
+/// Totals of a [`filter_adaptive`] run.
+#[derive(Debug, Default, Clone, Copy)]
+pub(crate) struct AdaptiveFilterStats {
+    /// View rays traced for the lattice.
+    pub samples: u64,
+    /// Lattice cells created (roots and refinements).
+    pub cells: u64,
+}
+
+#[derive(Clone, Copy)]
+struct Cell {
+    k: i64,
+    l: i64,
+    size: i64,
+    depth: u8,
+    /// Sample indices of the corners (k,l), (k+s,l), (k,l+s), (k+s,l+s).
+    corners: [u32; 4],
+    /// Index of the first of four children, 0 when the cell is a leaf.
+    child: u32,
+    flat: bool,
+    refinable: bool,
+    /// Spread of the corners' in-scatter, RGB (used when flat).
+    spread: [f64; 3],
+    /// Tolerance scale of the brightest window holding the cell (inherited from its root).
+    scale: f64,
+    /// The root cell it descends from.
+    root: u32,
+}
+
+/// Where a new cell comes from.
+struct CellOrigin {
+    depth: u8,
+    /// Tolerance scale (see [`Cell::scale`]).
+    scale: f64,
+    /// Its root; `None` for a root.
+    root: Option<u32>,
+    /// For a child: how far the image at the parent's five new points (edge
+    /// midpoints, centre) lies from the parent's bilinear interpolant, RGB
+    /// in-scatter and the largest transmittance channel.
+    parent_deviation: Option<([f64; 3], f64)>,
+}
+
+/// Moments of the window along one axis over the edge of a cell: for the
+/// interval `[x0, x0 + s]` (px from the pixel centre), the integrals of
+/// `w(x)·(x0 + s − x)/s` and `w(x)·(x − x0)/s`, i.e. the weights of the two
+/// end points when the image is interpolated linearly along the edge. With a
+/// bilinear interpolant on every cell, a window's weights sum to `(∫w)²` on
+/// any partition, so partial refinement cannot shift the normalisation (the
+/// product trapezoid rule, with `w` sampled at the corners, shifts it by
+/// several per cent at ½ px cells). Computed by 8-point Gauss–Legendre: `w` is
+/// a sum of cosines of at most 2π·(3/2)/width rad/px, and the rule is exact to
+/// ~1e-12 on ½ px intervals. Tabulated for every cell size down to
+/// `MIN_CELL`; smaller cells (at a light's image) are integrated when needed.
+struct WindowMoments {
+    half_units: i64,
+    /// Per level `d` (cell side `ROOT_CELL >> d`): moments of the intervals from `−half` on.
+    levels: Vec<Vec<(f64, f64)>>,
+    filter: PixelFilter,
+}
+
+/// 8-point Gauss–Legendre nodes and weights on [−1, 1].
+const GL8: [(f64, f64); 8] = [
+    (-0.960_289_856_497_536_3, 0.101_228_536_290_376_26),
+    (-0.796_666_477_413_626_7, 0.222_381_034_453_374_47),
+    (-0.525_532_409_916_329, 0.313_706_645_877_887_3),
+    (-0.183_434_642_495_649_8, 0.362_683_783_378_362),
+    (0.183_434_642_495_649_8, 0.362_683_783_378_362),
+    (0.525_532_409_916_329, 0.313_706_645_877_887_3),
+    (0.796_666_477_413_626_7, 0.222_381_034_453_374_47),
+    (0.960_289_856_497_536_3, 0.101_228_536_290_376_26),
+];
+
+impl WindowMoments {
+    fn new(filter: PixelFilter, half_units: i64) -> Self {
+        let mut levels = Vec::new();
+        let mut size = ROOT_CELL;
+        while size >= MIN_CELL {
+            let n = (2 * half_units / size) as usize;
+            levels.push(
+                (0..n)
+                    .map(|i| Self::integrate(&filter, i as i64 * size - half_units, size))
+                    .collect(),
+            );
+            size /= 2;
+        }
+        WindowMoments {
+            half_units,
+            levels,
+            filter,
+        }
+    }
+
+    fn integrate(filter: &PixelFilter, offset: i64, size: i64) -> (f64, f64) {
+        let u = UNITS_PER_PX as f64;
+        let (x0, s) = (offset as f64 / u, size as f64 / u);
+        let (mut m0, mut m1) = (0.0, 0.0);
+        for (z, g) in GL8 {
+            let frac = 0.5 * (z + 1.0);
+            let wx = filter.weight(x0 + frac * s) * 0.5 * g * s;
+            m0 += wx * (1.0 - frac);
+            m1 += wx * frac;
+        }
+        (m0, m1)
+    }
+
+    /// Moments of the interval `[offset, offset + size]` (units from the pixel centre).
+    #[inline]
+    fn at(&self, offset: i64, size: i64) -> (f64, f64) {
+        if offset >= self.half_units || offset + size <= -self.half_units {
+            return (0.0, 0.0);
+        }
+        let level = (ROOT_CELL / size).trailing_zeros() as usize;
+        match self.levels.get(level) {
+            Some(table) if size == ROOT_CELL >> level => table[((offset + self.half_units) / size) as usize],
+            _ => Self::integrate(&self.filter, offset, size),
+        }
+    }
+
+    /// Weights of a cell's corners (k,l), (k+s,l), (k,l+s), (k+s,l+s) for the pixel centred at (kc, lc).
+    #[inline]
+    fn corner_weights(&self, c: &Cell, kc: i64, lc: i64) -> [f64; 4] {
+        let (x0, x1) = self.at(c.k - kc, c.size);
+        let (y0, y1) = self.at(c.l - lc, c.size);
+        [x0 * y0, x1 * y0, x0 * y1, x1 * y1]
+    }
+}
+
+/// A flagged pixel while its window is refined. The sums run over the
+/// current leaves of its window and are updated as cells split.
+struct PixelState {
+    index: usize,
+    kc: i64,
+    lc: i64,
+    /// Tolerance scale: the brightest centre sample its window sees.
+    scale: f64,
+    /// Root cells of its window.
+    roots: Vec<u32>,
+    /// `Σ w·L` over the leaves (unnormalised).
+    sum: [f64; 3],
+    /// `Σ w` = `(∫w)²`, unchanged by splitting.
+    weight: f64,
+    /// `Σ w·spread` over flat leaves (unnormalised).
+    flat: [f64; 3],
+    /// `Σ |change|` of cells whose children cannot be refined, normalised.
+    carried: [f64; 3],
+    /// Cells of its window that may be split next.
+    frontier: Vec<u32>,
+}
+
+struct TileLattice<'a, S> {
+    job: &'a AdaptiveFilterJob<'a>,
+    table: &'a WindowMoments,
+    sample: &'a (dyn Fn(f64, f64) -> S + Sync),
+    points: HashMap<(i64, i64), u32>,
+    samples: Vec<S>,
+    cells: Vec<Cell>,
+    roots: HashMap<(i64, i64), u32>,
+    /// Memoised window scales by pixel index.
+    scales: HashMap<usize, f64>,
+    /// Per-sample weight sums while a pixel is accumulated (all 0 between pixels).
+    scratch: std::cell::RefCell<Vec<f64>>,
+}
+
+impl<S: FilterSample> TileLattice<'_, S> {
+    fn point(&mut self, k: i64, l: i64) -> u32 {
+        if let Some(&i) = self.points.get(&(k, l)) {
+            return i;
+        }
+        let u = UNITS_PER_PX as f64;
+        let s = (self.sample)(0.5 + k as f64 / u, 0.5 + l as f64 / u);
+        let i = self.samples.len() as u32;
+        self.samples.push(s);
+        self.points.insert((k, l), i);
+        i
+    }
+
+    fn at_light(&self, k: i64, l: i64, size: i64) -> bool {
+        let u = UNITS_PER_PX as f64;
+        let m = AT_LIGHT_REACH * size;
+        let (x0, y0) = (0.5 + (k - m) as f64 / u, 0.5 + (l - m) as f64 / u);
+        let (x1, y1) = (0.5 + (k + size + m) as f64 / u, 0.5 + (l + size + m) as f64 / u);
+        self.job.light_images.iter().any(|&(x, y)| x >= x0 && x <= x1 && y >= y0 && y <= y1)
+    }
+
+    /// Smallest window scale of the in-image pixels whose windows hold the
+    /// root cell at (k, l).
+    fn root_scale(&mut self, k: i64, l: i64) -> f64 {
+        let half = self.table.half_units;
+        // Pixel x holds [a, a + ROOT_CELL] when x·U − half ≤ a and a + ROOT_CELL ≤ x·U + half.
+        let range = |a: i64| -> (i64, i64) {
+            (
+                -(half - ROOT_CELL - a).div_euclid(UNITS_PER_PX),
+                (a + half).div_euclid(UNITS_PER_PX),
+            )
+        };
+        let ((x0, x1), (y0, y1)) = (range(k), range(l));
+        let mut m = f64::INFINITY;
+        for y in y0.max(0)..=y1.min(self.job.height as i64 - 1) {
+            for x in x0.max(0)..=x1.min(self.job.width as i64 - 1) {
+                let i = y as usize * self.job.width + x as usize;
+                let v = *self.scales.entry(i).or_insert_with(|| (self.job.window_scale)(i));
+                m = m.min(v);
+            }
+        }
+        if m.is_finite() { m } else { 0.0 }
+    }
+
+    /// Adds the cell of side `size` with corner (k, l).
+    fn new_cell(&mut self, k: i64, l: i64, size: i64, origin: CellOrigin) -> u32 {
+        let CellOrigin {
+            depth,
+            scale,
+            root,
+            parent_deviation,
+        } = origin;
+        let corners = [
+            self.point(k, l),
+            self.point(k + size, l),
+            self.point(k, l + size),
+            self.point(k + size, l + size),
+        ];
+        let tol = self.job.tolerance;
+        let mut spread = [0.0f64; 3];
+        let mut t_spread = 0.0f64;
+        for c in 0..3 {
+            let (mut lo, mut hi, mut tlo, mut thi) = (f64::INFINITY, f64::NEG_INFINITY, f64::INFINITY, f64::NEG_INFINITY);
+            for &p in &corners {
+                let s = &self.samples[p as usize];
+                let (v, t) = (s.radiance()[c], s.transmittance()[c]);
+                lo = lo.min(v);
+                hi = hi.max(v);
+                tlo = tlo.min(t);
+                thi = thi.max(t);
+            }
+            spread[c] = hi - lo;
+            t_spread = t_spread.max(thi - tlo);
+        }
+        let at_light = self.at_light(k, l, size);
+        let small = |d: &[f64; 3], t: f64| d.iter().all(|d| *d <= FLAT_FRACTION * tol * scale) && t <= FLAT_FRACTION * tol;
+        // Flat: the corners agree, or the image is smooth here (splitting
+        // the parent moved its interpolant by little: a steep but smooth
+        // gradient, which bilinear interpolation follows); the bound used
+        // for the cell is then that deviation. A non-finite corner is never
+        // flat (it is refined, and its error shows).
+        let mut flat = !at_light && small(&spread, t_spread);
+        if !flat
+            && !at_light
+            && let Some((dev, t_dev)) = parent_deviation
+            && small(&dev, t_dev)
+        {
+            flat = true;
+            spread = dev;
+        }
+        let min = if at_light { MIN_CELL_AT_LIGHT } else { MIN_CELL };
+        let refinable = !flat && size / 2 >= min;
+        let i = self.cells.len() as u32;
+        self.cells.push(Cell {
+            k,
+            l,
+            size,
+            depth,
+            corners,
+            child: 0,
+            flat,
+            refinable,
+            spread,
+            scale,
+            root: root.unwrap_or(i),
+        });
+        i
+    }
+
+    fn split(&mut self, i: u32) {
+        let c = self.cells[i as usize];
+        if c.child != 0 {
+            return;
+        }
+        let h = c.size / 2;
+        // The parent's bilinear interpolant at the five new points against the image there.
+        let corner = |j: usize| -> ([f64; 3], [f64; 3]) {
+            let s = &self.samples[c.corners[j] as usize];
+            (s.radiance(), s.transmittance())
+        };
+        let cs = [corner(0), corner(1), corner(2), corner(3)];
+        let mut dev = [0.0f64; 3];
+        let mut t_dev = 0.0f64;
+        for (dk, dl, mix) in [
+            (h, 0, [0.5, 0.5, 0.0, 0.0]),
+            (0, h, [0.5, 0.0, 0.5, 0.0]),
+            (2 * h, h, [0.0, 0.5, 0.0, 0.5]),
+            (h, 2 * h, [0.0, 0.0, 0.5, 0.5]),
+            (h, h, [0.25; 4]),
+        ] {
+            let p = self.point(c.k + dk, c.l + dl);
+            let (l, t) = (self.samples[p as usize].radiance(), self.samples[p as usize].transmittance());
+            for ch in 0..3 {
+                let il: f64 = (0..4).map(|j| mix[j] * cs[j].0[ch]).sum();
+                let it: f64 = (0..4).map(|j| mix[j] * cs[j].1[ch]).sum();
+                dev[ch] = dev[ch].max((l[ch] - il).abs());
+                t_dev = t_dev.max((t[ch] - it).abs());
+            }
+        }
+        let first = self.cells.len() as u32;
+        for (dk, dl) in [(0, 0), (h, 0), (0, h), (h, h)] {
+            self.new_cell(
+                c.k + dk,
+                c.l + dl,
+                h,
+                CellOrigin {
+                    depth: c.depth + 1,
+                    scale: c.scale,
+                    root: Some(c.root),
+                    parent_deviation: Some((dev, t_dev)),
+                },
+            );
+        }
+        self.cells[i as usize].child = first;
+    }
+
+    /// Cell `i`'s share of the pixel centred at (kc, lc), with the image
+    /// interpolated bilinearly from the corners: `(Σ w·L, Σ w)`.
+    fn cell_sums(&self, i: u32, kc: i64, lc: i64) -> ([f64; 3], f64) {
+        let c = &self.cells[i as usize];
+        let ws = self.table.corner_weights(c, kc, lc);
+        let mut sum = [0.0; 3];
+        let mut weight = 0.0;
+        for (p, w) in c.corners.iter().zip(ws) {
+            let l = self.samples[*p as usize].radiance();
+            for ch in 0..3 {
+                sum[ch] += w * l[ch];
+            }
+            weight += w;
+        }
+        (sum, weight)
+    }
+
+    /// The filtered sample of a pixel over the leaves of its window.
+    fn accumulate(&self, px: &PixelState) -> S {
+        let (kc, lc, weight) = (px.kc, px.lc, px.weight);
+        // A lattice point is a corner of up to four leaves: its weights are
+        // summed first (in `scratch`, indexed by sample), so each sample is
+        // accumulated once.
+        let mut scratch = self.scratch.borrow_mut();
+        scratch.resize(self.samples.len(), 0.0);
+        let mut touched: Vec<u32> = Vec::new();
+        let mut stack = px.roots.clone();
+        while let Some(i) = stack.pop() {
+            let c = self.cells[i as usize];
+            if c.child != 0 {
+                stack.extend(c.child..c.child + 4);
+                continue;
+            }
+            for (p, w) in c.corners.iter().zip(self.table.corner_weights(&c, kc, lc)) {
+                if w != 0.0 {
+                    if scratch[*p as usize] == 0.0 {
+                        touched.push(*p);
+                    }
+                    scratch[*p as usize] += w;
+                }
+            }
+        }
+        let mut acc = S::default();
+        for p in touched {
+            acc.add_weighted(&self.samples[p as usize], scratch[p as usize] / weight);
+            scratch[p as usize] = 0.0;
+        }
+        acc
+    }
+
+    fn add_flat(&self, i: u32, w: f64, flat: &mut [f64; 3]) {
+        let c = &self.cells[i as usize];
+        if c.flat {
+            for ch in 0..3 {
+                flat[ch] += w * c.spread[ch];
+            }
+        }
+    }
+
+    fn finish(&self, px: &PixelState, err: [f64; 3]) -> FilteredPixel<S> {
+        let value = self.accumulate(px);
+        let own = value.own_error();
+        FilteredPixel {
+            index: px.index,
+            value,
+            error: [err[0] + own[0], err[1] + own[1], err[2] + own[2]],
+        }
+    }
+
+    fn run(&mut self, pixels: &[usize]) -> Vec<FilteredPixel<S>> {
+        let half = self.table.half_units;
+        let n_roots = 2 * half / ROOT_CELL;
+        let tol = self.job.tolerance;
+        let mut done = Vec::with_capacity(pixels.len());
+        // Round 0: the root cells of every window.
+        let mut active: Vec<PixelState> = Vec::with_capacity(pixels.len());
+        for &index in pixels {
+            let (x, y) = ((index % self.job.width) as i64, (index / self.job.width) as i64);
+            let (kc, lc) = (x * UNITS_PER_PX, y * UNITS_PER_PX);
+            let mut roots = Vec::with_capacity((n_roots * n_roots) as usize);
+            for b in 0..n_roots {
+                for a in 0..n_roots {
+                    let (k, l) = (kc - half + a * ROOT_CELL, lc - half + b * ROOT_CELL);
+                    let r = match self.roots.get(&(k, l)) {
+                        Some(&r) => r,
+                        None => {
+                            let scale = self.root_scale(k, l);
+                            let origin = CellOrigin {
+                                depth: 0,
+                                scale,
+                                root: None,
+                                parent_deviation: None,
+                            };
+                            let r = self.new_cell(k, l, ROOT_CELL, origin);
+                            self.roots.insert((k, l), r);
+                            r
+                        }
+                    };
+                    roots.push(r);
+                }
+            }
+            let scale = *self.scales.entry(index).or_insert_with(|| (self.job.window_scale)(index));
+            let mut px = PixelState {
+                index,
+                kc,
+                lc,
+                scale,
+                roots,
+                sum: [0.0; 3],
+                weight: 0.0,
+                flat: [0.0; 3],
+                carried: [0.0; 3],
+                frontier: Vec::new(),
+            };
+            for j in 0..px.roots.len() {
+                let r = px.roots[j];
+                let (s, w) = self.cell_sums(r, kc, lc);
+                for ch in 0..3 {
+                    px.sum[ch] += s[ch];
+                }
+                px.weight += w;
+                self.add_flat(r, w, &mut px.flat);
+                if self.cells[r as usize].refinable {
+                    px.frontier.push(r);
+                }
+            }
+            if px.frontier.is_empty() || px.weight <= 0.0 {
+                let err = px.flat.map(|f| if px.weight > 0.0 { f / px.weight } else { 0.0 });
+                done.push(self.finish(&px, err));
+            } else {
+                active.push(px);
+            }
+        }
+        // Later rounds: split the frontiers of unconverged pixels, then update
+        // every active pixel with the cells of its window that were split.
+        while !active.is_empty() {
+            let mut split: Vec<u32> = active.iter().flat_map(|p| p.frontier.iter().copied()).collect();
+            split.sort_unstable();
+            split.dedup();
+            let mut by_root: HashMap<u32, Vec<u32>> = HashMap::default();
+            for &i in &split {
+                self.split(i);
+                by_root.entry(self.cells[i as usize].root).or_default().push(i);
+            }
+            let mut still = Vec::with_capacity(active.len());
+            for mut px in active {
+                px.frontier.clear();
+                let est = px.sum.map(|v| v / px.weight);
+                let mut change = [0.0f64; 3];
+                let mut terminal = [0.0f64; 3];
+                for &r in &px.roots {
+                    let Some(cells) = by_root.get(&r) else { continue };
+                    for &i in cells {
+                        let (s, w) = self.cell_sums(i, px.kc, px.lc);
+                        let mut ds = [-s[0], -s[1], -s[2]];
+                        let mut dw = -w;
+                        let mut is_terminal = true;
+                        let first = self.cells[i as usize].child;
+                        for j in first..first + 4 {
+                            let (sj, wj) = self.cell_sums(j, px.kc, px.lc);
+                            for ch in 0..3 {
+                                ds[ch] += sj[ch];
+                            }
+                            dw += wj;
+                            self.add_flat(j, wj, &mut px.flat);
+                            if self.cells[j as usize].refinable {
+                                is_terminal = false;
+                                px.frontier.push(j);
+                            }
+                        }
+                        for ch in 0..3 {
+                            px.sum[ch] += ds[ch];
+                            // The change of the normalised estimate (dw is 0 up to rounding).
+                            let d = ((ds[ch] - est[ch] * dw) / px.weight).abs();
+                            if is_terminal {
+                                terminal[ch] += d;
+                            } else {
+                                change[ch] += d;
+                            }
+                        }
+                    }
+                }
+                let mut err = [0.0f64; 3];
+                for ch in 0..3 {
+                    px.carried[ch] += TERMINAL_FACTOR * terminal[ch];
+                    err[ch] = change[ch] + px.carried[ch] + px.flat[ch] / px.weight;
+                }
+                let scale = px.sum.iter().fold(px.scale, |m, v| m.max((v / px.weight).abs()));
+                // A pixel whose carried error (cells at their finest size,
+                // e.g. a hard silhouette) already exceeds the tolerance cannot
+                // converge: it stops once the cells that could still be
+                // refined contribute no more than that, rather than refining
+                // every smooth cell of its window to the finest size.
+                let converged = err.iter().all(|e| *e <= tol * scale);
+                let capped =
+                    (0..3).any(|ch| px.carried[ch] > tol * scale) && (0..3).all(|ch| change[ch] <= px.carried[ch].max(tol * scale));
+                if px.frontier.is_empty() || converged || capped {
+                    done.push(self.finish(&px, err));
+                } else {
+                    still.push(px);
+                }
+            }
+            active = still;
+        }
+        done
+    }
+}
+
+/// Integrates the pixels `flagged` (image indices) against the filter on a
+/// shared adaptive lattice (see the module documentation). `sample(x, y)`
+/// traces the view ray through pixel coordinates (x, y) (pixel `i` spans
+/// `[i, i+1)`); it is called for points outside the image too.
+pub(crate) fn filter_adaptive<S: FilterSample>(
+    job: &AdaptiveFilterJob<'_>,
+    flagged: &[usize],
+    sample: &(dyn Fn(f64, f64) -> S + Sync),
+) -> (Vec<FilteredPixel<S>>, AdaptiveFilterStats) {
+    let radius = job.filter.radius();
+    if flagged.is_empty() || radius <= 0.0 {
+        return (Vec::new(), AdaptiveFilterStats::default());
+    }
+    // The window rounded up to whole root cells (the weight is 0 beyond the radius).
+    let half_units = ((radius * UNITS_PER_PX as f64 / ROOT_CELL as f64).ceil() as i64).max(1) * ROOT_CELL;
+    let table = WindowMoments::new(job.filter, half_units);
+    let mut tiles: HashMap<(usize, usize), Vec<usize>> = HashMap::default();
+    for &i in flagged {
+        let (x, y) = (i % job.width, i / job.width);
+        tiles.entry((x / TILE_PX, y / TILE_PX)).or_default().push(i);
+    }
+    let mut groups: Vec<Vec<usize>> = tiles.into_values().collect();
+    // Largest tiles first, so the threads finish together.
+    groups.sort_by_key(|g| std::cmp::Reverse(g.len()));
+    // Each worker keeps one lattice and reuses its buffers from tile to tile
+    // (a sample is ~1 kB: fresh buffers per tile cost more in page faults
+    // than the view rays).
+    let results: Vec<(Vec<FilteredPixel<S>>, AdaptiveFilterStats)> = groups
+        .par_iter()
+        .map_init(
+            || TileLattice {
+                job,
+                table: &table,
+                sample,
+                points: HashMap::default(),
+                samples: Vec::with_capacity(4096),
+                cells: Vec::with_capacity(4096),
+                roots: HashMap::default(),
+                scales: HashMap::default(),
+                scratch: std::cell::RefCell::new(Vec::with_capacity(4096)),
+            },
+            |lattice, pixels| {
+                lattice.points.clear();
+                lattice.samples.clear();
+                lattice.cells.clear();
+                lattice.roots.clear();
+                lattice.scales.clear();
+                let out = lattice.run(pixels);
+                let stats = AdaptiveFilterStats {
+                    samples: lattice.samples.len() as u64,
+                    cells: lattice.cells.len() as u64,
+                };
+                (out, stats)
+            },
+        )
+        .collect();
+    let mut stats = AdaptiveFilterStats::default();
+    let mut out = Vec::with_capacity(flagged.len());
+    for (px, s) in results {
+        out.extend(px);
+        stats.samples += s.samples;
+        stats.cells += s.cells;
+    }
+    (out, stats)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -121,5 +805,275 @@ mod tests {
         let w: f64 = 3.0;
         let exact = w * w * (1.0 / 12.0 - (a1 - a2 / 4.0 + a3 / 9.0) / (2.0 * PI * PI * a0));
         assert!((f.variance() - exact).abs() < 1e-6 * exact, "{} vs {exact}", f.variance());
+    }
+}
+
+#[cfg(test)]
+mod adaptive_tests {
+    use super::*;
+
+    #[derive(Clone, Copy, Default, Debug)]
+    struct Toy {
+        l: [f64; 3],
+        weight: f64,
+    }
+
+    impl FilterSample for Toy {
+        fn radiance(&self) -> [f64; 3] {
+            self.l
+        }
+        fn transmittance(&self) -> [f64; 3] {
+            [1.0; 3]
+        }
+        fn own_error(&self) -> [f64; 3] {
+            [0.0; 3]
+        }
+        fn add_weighted(&mut self, other: &Self, weight: f64) {
+            for c in 0..3 {
+                self.l[c] += weight * other.l[c];
+            }
+            self.weight += weight;
+        }
+    }
+
+    /// Brute force: n×n midpoint rule of f·w over the window, normalised.
+    fn brute(filter: &PixelFilter, f: &dyn Fn(f64, f64) -> f64, cx: f64, cy: f64, n: usize) -> f64 {
+        let nodes = filter.nodes(n);
+        let mut s = 0.0;
+        for &(dy, wy) in &nodes {
+            for &(dx, wx) in &nodes {
+                s += wx * wy * f(cx + dx, cy + dy);
+            }
+        }
+        s
+    }
+
+    /// Brute force for a window holding the singular point `(px, py)` of
+    /// `f = a/ρ + b` (ρ the distance to it): polar coordinates about the
+    /// point, where the Jacobian ρ cancels the peak, Gauss–Legendre in ρ and
+    /// in θ, with θ split at the window's corners (where ρ_max(θ) has kinks).
+    fn brute_polar(filter: &PixelFilter, (px, py): (f64, f64), a: f64, b: f64, cx: f64, cy: f64) -> f64 {
+        let r = filter.radius();
+        let gl = |n: usize| -> Vec<(f64, f64)> {
+            // Gauss–Legendre by Newton on P_n.
+            (0..n)
+                .map(|i| {
+                    let mut x = (PI * (i as f64 + 0.75) / (n as f64 + 0.5)).cos();
+                    for _ in 0..100 {
+                        let (mut p0, mut p1) = (1.0, x);
+                        for k in 2..=n {
+                            let p2 = ((2 * k - 1) as f64 * x * p1 - (k - 1) as f64 * p0) / k as f64;
+                            p0 = p1;
+                            p1 = p2;
+                        }
+                        let dp = n as f64 * (x * p1 - p0) / (x * x - 1.0);
+                        let dx = p1 / dp;
+                        x -= dx;
+                        if dx.abs() < 1e-16 {
+                            break;
+                        }
+                    }
+                    let (mut p0, mut p1) = (1.0, x);
+                    for k in 2..=n {
+                        let p2 = ((2 * k - 1) as f64 * x * p1 - (k - 1) as f64 * p0) / k as f64;
+                        p0 = p1;
+                        p1 = p2;
+                    }
+                    let dp = n as f64 * (x * p1 - p0) / (x * x - 1.0);
+                    (x, 2.0 / ((1.0 - x * x) * dp * dp))
+                })
+                .collect()
+        };
+        let nodes = gl(48);
+        let (x0, x1, y0, y1) = (cx - r, cx + r, cy - r, cy + r);
+        let mut cuts: Vec<f64> = [(x0, y0), (x1, y0), (x0, y1), (x1, y1)]
+            .iter()
+            .map(|&(x, y)| (y - py).atan2(x - px).rem_euclid(2.0 * PI))
+            .collect();
+        cuts.push(0.0);
+        cuts.push(2.0 * PI);
+        cuts.sort_by(f64::total_cmp);
+        let norm = (0.35875 * 2.0 * r).powi(2);
+        let mut total = 0.0;
+        for seg in cuts.windows(2) {
+            for sub in 0..16 {
+                let (t0, t1) = (
+                    seg[0] + (seg[1] - seg[0]) * sub as f64 / 16.0,
+                    seg[0] + (seg[1] - seg[0]) * (sub + 1) as f64 / 16.0,
+                );
+                for &(zt, wt) in &nodes {
+                    let th = 0.5 * (t0 + t1) + 0.5 * (t1 - t0) * zt;
+                    let (c, s) = (th.cos(), th.sin());
+                    // Distance from the point to the window's boundary along θ.
+                    let tx = if c > 0.0 {
+                        (x1 - px) / c
+                    } else if c < 0.0 {
+                        (x0 - px) / c
+                    } else {
+                        f64::INFINITY
+                    };
+                    let ty = if s > 0.0 {
+                        (y1 - py) / s
+                    } else if s < 0.0 {
+                        (y0 - py) / s
+                    } else {
+                        f64::INFINITY
+                    };
+                    let rmax = tx.min(ty);
+                    for &(zr, wr) in &nodes {
+                        let rho = 0.5 * rmax * (zr + 1.0);
+                        let (x, y) = (px + rho * c, py + rho * s);
+                        let g = (a + b * rho) * filter.weight(x - cx) * filter.weight(y - cy);
+                        total += g * 0.5 * rmax * wr * 0.5 * (t1 - t0) * wt;
+                    }
+                }
+            }
+        }
+        total / norm
+    }
+
+    #[test]
+    fn adaptive_lattice_resolves_a_point_lights_image() {
+        // f = a/ρ + b about a light's image: inside a pixel, and on a pixel
+        // boundary (as the spot of the Cycles scene `spot_box_occluder`).
+        let filter = PixelFilter::default();
+        let (w, h) = (12usize, 10usize);
+        for (light, tol) in [((5.37, 4.81), 1e-2), ((6.0, 4.2), 1e-2), ((5.37, 4.81), 1e-3)] {
+            let (a, b) = (0.05, 0.1);
+            let f = move |x: f64, y: f64| a / (x - light.0).hypot(y - light.1) + b;
+            let scale_of = |i: usize| -> f64 {
+                let (x, y) = ((i % w) as i64, (i / w) as i64);
+                let mut m = 0.0f64;
+                for dy in -2..=2i64 {
+                    for dx in -2..=2i64 {
+                        m = m.max(f((x + dx) as f64 + 0.5, (y + dy) as f64 + 0.5));
+                    }
+                }
+                m
+            };
+            let lights = [light];
+            let job = AdaptiveFilterJob {
+                filter,
+                width: w,
+                height: h,
+                tolerance: tol,
+                window_scale: &scale_of,
+                light_images: &lights,
+            };
+            let flagged: Vec<usize> = (0..w * h).collect();
+            let sample = |x: f64, y: f64| Toy {
+                l: [f(x, y); 3],
+                weight: 0.0,
+            };
+            let (out, stats) = filter_adaptive(&job, &flagged, &sample);
+            let mut honest = 0;
+            let mut worst = 0.0f64;
+            for p in &out {
+                let (cx, cy) = ((p.index % w) as f64 + 0.5, (p.index / w) as f64 + 0.5);
+                let holds = (light.0 - cx).abs() < filter.radius() && (light.1 - cy).abs() < filter.radius();
+                let exact = if holds {
+                    brute_polar(&filter, light, a, b, cx, cy)
+                } else {
+                    brute(&filter, &f, cx, cy, 512)
+                };
+                let err = (p.value.l[0] - exact).abs();
+                worst = worst.max(err / scale_of(p.index));
+                if err <= p.error[0] + 1e-9 * scale_of(p.index) {
+                    honest += 1;
+                } else {
+                    eprintln!(
+                        "  ({cx}, {cy}) holds {holds}: {} vs {exact}: err {err:.3e} > estimate {:.3e}",
+                        p.value.l[0], p.error[0]
+                    );
+                }
+            }
+            eprintln!(
+                "light at {light:?}, tol {tol:e}: honest {honest}/{}, worst rel {worst:.3e}, {} rays, {} cells",
+                out.len(),
+                stats.samples,
+                stats.cells
+            );
+            assert_eq!(honest, out.len());
+            assert!(worst <= tol, "worst {worst:e}");
+        }
+    }
+
+    fn check(name: &str, f: &(dyn Fn(f64, f64) -> f64 + Sync), tol: f64, lights: &[(f64, f64)], expect_honest: f64) {
+        let filter = PixelFilter::default();
+        let (w, h) = (12usize, 10usize);
+        let scale_of = |i: usize| -> f64 {
+            let (x, y) = ((i % w) as i64, (i / w) as i64);
+            let mut m = 0.0f64;
+            for dy in -2..=2i64 {
+                for dx in -2..=2i64 {
+                    let (nx, ny) = (x + dx, y + dy);
+                    if nx >= 0 && ny >= 0 && nx < w as i64 && ny < h as i64 {
+                        m = m.max(f(nx as f64 + 0.5, ny as f64 + 0.5).abs());
+                    }
+                }
+            }
+            m
+        };
+        let job = AdaptiveFilterJob {
+            filter,
+            width: w,
+            height: h,
+            tolerance: tol,
+            window_scale: &scale_of,
+            light_images: lights,
+        };
+        let flagged: Vec<usize> = (0..w * h).collect();
+        let sample = |x: f64, y: f64| Toy {
+            l: [f(x, y); 3],
+            weight: 0.0,
+        };
+        let (out, stats) = filter_adaptive(&job, &flagged, &sample);
+        assert_eq!(out.len(), w * h);
+        let mut honest = 0;
+        let mut worst = 0.0f64;
+        for p in &out {
+            let (x, y) = ((p.index % w) as f64 + 0.5, (p.index / w) as f64 + 0.5);
+            let exact = brute(&filter, f, x, y, 1024);
+            let err = (p.value.l[0] - exact).abs();
+            assert!((p.value.weight - 1.0).abs() < 1e-12, "{name}: weights sum to {}", p.value.weight);
+            worst = worst.max(err / scale_of(p.index).max(1e-300));
+            if err <= p.error[0] + 1e-9 * scale_of(p.index) {
+                honest += 1;
+            } else {
+                eprintln!(
+                    "  {name} ({x}, {y}): value {} exact {exact} err {err:.3e} estimate {:.3e}",
+                    p.value.l[0], p.error[0]
+                );
+            }
+        }
+        let frac = honest as f64 / out.len() as f64;
+        eprintln!(
+            "{name}: tol {tol:e}: honest {honest}/{}, worst rel {worst:.3e}, {} rays, {} cells",
+            out.len(),
+            stats.samples,
+            stats.cells
+        );
+        assert!(frac >= expect_honest, "{name}: only {honest}/{} honest", out.len());
+    }
+
+    #[test]
+    fn adaptive_lattice_against_brute_force() {
+        let bump = |x: f64, y: f64| (-((x - 5.3).powi(2) + (y - 4.1).powi(2)) / 2.0).exp();
+        let narrow = |x: f64, y: f64| (-((x - 5.3 - 0.2 * y).powi(2)) / 0.3).exp();
+        let step = |x: f64, y: f64| if y > 0.37 * x + 2.1 { 1.0 } else { 0.2 };
+        for tol in [1e-2, 1e-3] {
+            check("constant", &|_, _| 0.7, tol, &[], 1.0);
+            check("bump", &bump, tol, &[], 1.0);
+            check("narrow beam", &narrow, tol, &[], 1.0);
+            check("step", &step, tol, &[], 1.0);
+            // A step along a lattice line (the pixel boundary y = 5), just off it.
+            check(
+                "aligned step",
+                &|_: f64, y: f64| if y > 5.0 - 1e-5 { 0.1 } else { 0.0 },
+                tol,
+                &[],
+                1.0,
+            );
+        }
     }
 }

@@ -1251,6 +1251,7 @@ fn render_channels<const C: usize>(scene: &Scene, report: &mut Report, progress:
             in_medium: p.in_medium,
             lights: per_light,
             surface_t,
+            light_layers: if want_per_light || want_surface_t { n_stage as u8 } else { 0 },
             hit_weight: if p.hit { 1.0 } else { 0.0 },
             stage_segments: p.stage.map_or(0, |s| s.segments),
             stage_skipped: p.stage.map_or(0, |s| s.lights_skipped),
@@ -1348,6 +1349,10 @@ fn render_channels<const C: usize>(scene: &Scene, report: &mut Report, progress:
         crate::scene::Camera::Equirectangular(_) => filter::PixelFilter::None,
     };
     let mut edge = EdgeStats::default();
+    // Images of point lights: there the in-scatter has an integrable 1/r
+    // peak, which the filter's lattice resolves with cells down to 1/2048 px.
+    let light_images: Vec<(f64, f64)> = stage_lights.points.iter().filter_map(|p| cam.project(p.light.position)).collect();
+    report.stats.light_images = light_images.iter().map(|p| [p.0, p.1]).collect();
     if filter.radius() > 0.0 {
         let reach = filter.radius().ceil() as isize;
         let half_var = 0.5 * filter.variance();
@@ -1495,31 +1500,20 @@ fn render_channels<const C: usize>(scene: &Scene, report: &mut Report, progress:
         }
         stats.max_abs += lap_abs;
         stats.max_rel += lap_rel;
-        // Pixels whose filter window holds (or is within a pixel of) the image
-        // of a point light: the in-scatter there has an integrable 1/r
-        // singularity, which the n×n midpoint rule resolves only at larger n.
-        let light_images: Vec<(f64, f64)> = stage_lights.points.iter().filter_map(|p| cam.project(p.light.position)).collect();
-        let near_light_image = |x: f64, y: f64| -> bool {
-            let reach = filter.radius() + 1.0;
-            light_images.iter().any(|p| (p.0 - x).abs() <= reach && (p.1 - y).abs() <= reach)
+        let job = filter::AdaptiveFilterJob {
+            filter,
+            width: w,
+            height: h,
+            tolerance,
+            window_scale: &window_scale,
+            light_images: &light_images,
         };
-        let filtered: Vec<(usize, Sample, [f64; 3], usize, f64)> = edges
-            .par_iter()
-            .map(|&i| {
-                let (x, y) = ((i % w) as f64 + 0.5, (i / w) as f64 + 0.5);
-                let max_n = if near_light_image(x, y) {
-                    MAX_FILTER_SAMPLES_NEAR_LIGHT
-                } else {
-                    MAX_FILTER_SAMPLES_PER_AXIS
-                };
-                let scale = window_scale(i);
-                let (s, err, n) = filter_pixel(&filter, x, y, tolerance, scale, max_n, &sample);
-                (i, s, err, n * n, scale)
-            })
-            .collect();
+        let (filtered, lattice) = filter::filter_adaptive(&job, &edges, &sample);
         edge.pixels = filtered.len() as u64;
-        for (i, s, err, samples, scale) in &filtered {
-            edge.samples += *samples as u64;
+        edge.samples = lattice.samples;
+        let scales: Vec<f64> = filtered.iter().map(|f| window_scale(f.index)).collect();
+        for (f, &scale) in filtered.iter().zip(&scales) {
+            let (i, s, err) = (&f.index, &f.value, &f.error);
             inscatter[*i] = s.l.map(|v| v as f32);
             for (k, img) in light_inscatter.iter_mut().enumerate() {
                 img[*i] = s.lights[k].map(|v| v as f32);
@@ -1534,7 +1528,7 @@ fn render_channels<const C: usize>(scene: &Scene, report: &mut Report, progress:
             if want_error {
                 error[*i] = err.map(|v| v as f32);
             }
-            let m = s.l.iter().fold(0.0f64, |a, v| a.max(v.abs())).max(*scale);
+            let m = s.l.iter().fold(0.0f64, |a, v| a.max(v.abs())).max(scale);
             let e_max = err.iter().fold(0.0f64, |a, v| a.max(*v));
             let rel = if m > 0.0 { e_max / m } else { 0.0 };
             edge.max_abs = edge.max_abs.max(e_max);
@@ -1546,10 +1540,11 @@ fn render_channels<const C: usize>(scene: &Scene, report: &mut Report, progress:
         report.plan.computed(
             format!("pixel filter integral on {} pixels (silhouettes, sharp medium boundaries)", filtered.len()),
             format!(
-                "Blackman-Harris, filter size {:.2} px (Blender's; window ±{:.2} px as Cycles doubles it), n×n midpoint rule doubling from 4 to {MAX_FILTER_SAMPLES_PER_AXIS} per axis ({MAX_FILTER_SAMPLES_NEAR_LIGHT} where the window holds a point light's image) until two estimates agree to the tolerance: {} samples (last estimates)",
+                "Blackman-Harris, filter size {:.2} px (Blender's; window ±{:.2} px as Cycles doubles it), bilinear interpolation integrated exactly against the window, on one adaptive lattice shared by all windows: ½ px cells split while not flat to the tolerance, down to 1/32 px (1/2048 px at a point light's image), until each pixel's estimate settles: {} view rays, {} cells",
                 filter.radius(),
                 filter.radius(),
-                edge.samples
+                edge.samples,
+                lattice.cells
             ),
         );
         report.plan.left_out(
@@ -1740,6 +1735,9 @@ struct Sample {
     lights: [[f64; 3]; stage::MAX_LIGHT_LAYERS],
     /// Per stage light T_view · T(surface → light) times `hit_weight` (0 without surface).
     surface_t: [[f64; 3]; stage::MAX_LIGHT_LAYERS],
+    /// How many entries of `lights` and `surface_t` are output (the rest are
+    /// not accumulated by the pixel filter).
+    light_layers: u8,
     /// 1 where the ray ends on a surface, 0 otherwise; in a filtered sum the
     /// filter weight of the surface samples.
     hit_weight: f64,
@@ -1780,38 +1778,6 @@ fn surface_changes(a: u32, b: u32, owner: &[u32]) -> bool {
     }
 }
 
-/// Largest n of the n×n filter integral at silhouettes.
-const MAX_FILTER_SAMPLES_PER_AXIS: usize = 16;
-/// Largest n where the window holds a point light's image.
-const MAX_FILTER_SAMPLES_NEAR_LIGHT: usize = 64;
-
-/// The filtered value of one pixel: n×n midpoint rule over the filter's
-/// support, n = 4, 8, 16, until two successive estimates agree to
-/// `tolerance` (relative to the largest channel); returns the finest estimate,
-/// the difference as its error, and n.
-fn filter_pixel(
-    filter: &filter::PixelFilter,
-    x: f64,
-    y: f64,
-    tolerance: f64,
-    scale_floor: f64,
-    max_per_axis: usize,
-    sample: &(dyn Fn(f64, f64) -> Sample + Sync),
-) -> (Sample, [f64; 3], usize) {
-    let estimate = |n: usize| -> Sample {
-        let nodes = filter.nodes(n);
-        // Accumulator only: depth, hit and surface are the caller's (centre sample).
-        let mut acc = Sample::default();
-        for &(dy, wy) in &nodes {
-            for &(dx, wx) in &nodes {
-                accumulate(&mut acc, &sample(x + dx, y + dy), wx * wy);
-            }
-        }
-        acc
-    };
-    refine_until_agreed(estimate, 4, max_per_axis, tolerance, scale_floor)
-}
-
 /// `acc += wgt · s` for the filtered quantities of a sample.
 fn accumulate(acc: &mut Sample, s: &Sample, wgt: f64) {
     for c in 0..3 {
@@ -1820,12 +1786,14 @@ fn accumulate(acc: &mut Sample, s: &Sample, wgt: f64) {
         acc.st[c] += wgt * s.st[c];
         acc.e[c] += wgt * s.e[c];
     }
-    for (a, v) in acc.lights.iter_mut().zip(&s.lights) {
+    let n = usize::from(s.light_layers);
+    acc.light_layers = acc.light_layers.max(s.light_layers);
+    for (a, v) in acc.lights[..n].iter_mut().zip(&s.lights[..n]) {
         for c in 0..3 {
             a[c] += wgt * v[c];
         }
     }
-    for (a, v) in acc.surface_t.iter_mut().zip(&s.surface_t) {
+    for (a, v) in acc.surface_t[..n].iter_mut().zip(&s.surface_t[..n]) {
         for c in 0..3 {
             a[c] += wgt * v[c];
         }
@@ -1839,31 +1807,18 @@ fn accumulate(acc: &mut Sample, s: &Sample, wgt: f64) {
     acc.rel = acc.rel.max(s.rel);
 }
 
-/// Doubles the resolution `n` of `estimate(n)` from `start` until two successive
-/// estimates agree to `tolerance` (relative to the largest channel, at least
-/// `scale_floor`) or `n` reaches `max_n`; returns the finer estimate, the
-/// difference plus the samples' own error as its error, and `n`.
-fn refine_until_agreed(
-    estimate: impl Fn(usize) -> Sample,
-    start: usize,
-    max_n: usize,
-    tolerance: f64,
-    scale_floor: f64,
-) -> (Sample, [f64; 3], usize) {
-    let mut coarse = estimate(start);
-    let mut n = 2 * start;
-    loop {
-        let fine = estimate(n);
-        let mut err = [0.0; 3];
-        for c in 0..3 {
-            err[c] = (fine.l[c] - coarse.l[c]).abs() + fine.e[c];
-        }
-        let scale = fine.l.iter().fold(0.0f64, |m, v| m.max(v.abs())).max(scale_floor);
-        if n >= max_n || err.iter().all(|e| *e <= tolerance * scale) {
-            return (fine, err, n);
-        }
-        coarse = fine;
-        n *= 2;
+impl filter::FilterSample for Sample {
+    fn radiance(&self) -> [f64; 3] {
+        self.l
+    }
+    fn transmittance(&self) -> [f64; 3] {
+        self.t
+    }
+    fn own_error(&self) -> [f64; 3] {
+        self.e
+    }
+    fn add_weighted(&mut self, other: &Self, weight: f64) {
+        accumulate(self, other, weight);
     }
 }
 
