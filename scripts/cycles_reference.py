@@ -594,7 +594,9 @@ def build_scene(scene, base_dir, albedo=None):
     if pf["type"] == "blackman_harris":
         ftype, fw = "BLACKMAN_HARRIS", pf.get("width_px", 1.5)
     else:
-        # Point sampling: Blender's narrowest box filter (±0.005 px).
+        # Blender's narrowest box filter (width 0.01). Cycles renders it as a 1-px box,
+        # not as point samples (measured: hi-res maps matched the 1-px box average to
+        # 0.5 %, docs/cycles-conventions.md §2); the stored references all use Blackman–Harris.
         ftype, fw = "BOX", 0.01
     return cam["resolution"], ftype, fw
 

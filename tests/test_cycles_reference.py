@@ -33,22 +33,45 @@ def relative_rmse(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.sqrt(np.mean((a - b) ** 2)) / np.sqrt(np.mean(b**2)))
 
 
-def render_inscatter(name: str) -> np.ndarray:
+def render_inscatter(name: str) -> tuple[np.ndarray, dict]:
     scene = json.loads((DATA / f"{name}.json").read_text())
     scene["output"] = dict(scene.get("output", {}), layers=["inscatter"], tolerance=1e-3)
-    layers, _ = tyndall.render(scene)
-    return layers["inscatter"].astype(np.float64)
+    layers, report = tyndall.render(scene)
+    return layers["inscatter"].astype(np.float64), report
+
+
+def light_pixels(report: dict, shape: tuple[int, ...]) -> np.ndarray:
+    """True at the pixels whose square [i, i+1] × [j, j+1] holds a light's image."""
+    mask = np.zeros(shape[:2], dtype=bool)
+    for x, y in report["stats"].get("light_images", []):
+        for j in range(int(np.floor(y)) - 1, int(np.floor(y)) + 1):
+            for i in range(int(np.floor(x)) - 1, int(np.floor(x)) + 1):
+                if 0 <= i < shape[1] and 0 <= j < shape[0] and i <= x <= i + 1 and j <= y <= j + 1:
+                    mask[j, i] = True
+    return mask
 
 
 @pytest.mark.parametrize(
     "name", ["spot_box_occluder", "narrow_beam_5deg", "camera_in_dense_beam", "two_coloured_spots"]
 )
 def test_inscatter_matches_converged_cycles(name: str) -> None:
+    """Relative RMSE over the image, leaving out the pixels that hold a spot's
+    image: there Cycles 5.0.1 loses light (its cone clip of a view ray passing
+    within ~2 cm of the apex runs in 32-bit floats and comes out empty; the loss
+    grows with the camera–light distance and is gone with the ray origin 0.24 m
+    from the light: docs/cycles-conventions.md §2). At most two pixels per light
+    are left out; both figures are printed."""
     ref = read_rgb(DATA / f"{name}.exr")
-    got = render_inscatter(name)
-    rmse = relative_rmse(got, ref)
+    got, report = render_inscatter(name)
+    at_light = light_pixels(report, ref.shape)
+    assert at_light.sum() <= 2 * max(1, len(report["stats"].get("light_images", [])))
+    rmse_all = relative_rmse(got, ref)
+    rmse = relative_rmse(got[~at_light], ref[~at_light])
     noise = MANIFEST["references"][name].get("noise_rel_rms", 0.0)
-    print(f"{name}: relative RMSE {rmse:.4%} (reference noise {noise:.4%})")
+    print(
+        f"{name}: relative RMSE {rmse:.4%} without the {at_light.sum()} light pixels, "
+        f"{rmse_all:.4%} over all (reference noise {noise:.4%})"
+    )
     assert rmse <= 0.01
 
 
@@ -58,7 +81,7 @@ def test_spot_with_occluder_shadow_shaft_matches_cycles() -> None:
     to well under the whole-image figure."""
     name = "spot_box_occluder"
     ref = read_rgb(DATA / f"{name}.exr")
-    got = render_inscatter(name)
+    got, _ = render_inscatter(name)
     mask = np.ones(ref.shape[:2], dtype=bool)
     mask[3:9, 45:51] = False
     away = relative_rmse(got[mask], ref[mask])
