@@ -3,6 +3,7 @@ Cycles' sample sweep, both measured against the converged Cycles reference in
 tests/data/cycles (relative RMSE over the image).
 
     python scripts/bench_stage_vs_cycles.py SCENE_NAME --bpy-python /path/to/python-with-bpy
+    python scripts/bench_stage_vs_cycles.py NAME --scene S.json --reference S.exr ...
 
 Writes a markdown table to stdout. Timings are wall times on this machine;
 Cycles' include scene building inside bpy (its own log gives render time only).
@@ -64,9 +65,11 @@ def main() -> None:
     ap.add_argument("--bpy-python", default="")
     ap.add_argument("--samples", default="4,16,64,256,1024")
     ap.add_argument("--tolerances", default="1e-1,1e-2,1e-3,1e-4,1e-6")
+    ap.add_argument("--scene", default="", help="scene JSON (default: tests/data/cycles/NAME.json)")
+    ap.add_argument("--reference", default="", help="converged Cycles EXR (default: tests/data/cycles/NAME.exr)")
     args = ap.parse_args()
-    scene_path = DATA / f"{args.name}.json"
-    ref = read_rgb(DATA / f"{args.name}.exr")
+    scene_path = Path(args.scene) if args.scene else DATA / f"{args.name}.json"
+    ref = read_rgb(Path(args.reference) if args.reference else DATA / f"{args.name}.exr")
     scene = json.loads(scene_path.read_text())
     print(f"## {args.name}: relative RMSE against the converged Cycles reference\n")
     print("| renderer | setting | wall time, s | relative RMSE | without light pixels |")
