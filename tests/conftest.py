@@ -93,3 +93,23 @@ def small_scene() -> Callable[..., SceneDict]:
         return scene
 
     return make
+
+
+def light_image_pixel_mask(report: dict[str, Any], height: int, width: int) -> list[list[bool]]:
+    """True at the pixels whose square [i, i+1] × [j, j+1] holds a point light's
+    image (``stats.light_images`` of a Tyndall report). There Cycles 5.0.1 loses
+    light (its float32 cone clip of view rays near a spot's apex,
+    docs/cycles-conventions.md §2), so the Cycles comparisons leave them out."""
+    mask = [[False] * width for _ in range(height)]
+    for x, y in report["stats"].get("light_images", []):
+        for j in (int(y // 1) - 1, int(y // 1)):
+            for i in (int(x // 1) - 1, int(x // 1)):
+                if 0 <= i < width and 0 <= j < height and i <= x <= i + 1 and j <= y <= j + 1:
+                    mask[j][i] = True
+    return mask
+
+
+@pytest.fixture(scope="session")
+def light_pixels() -> Callable[[dict[str, Any], int, int], list[list[bool]]]:
+    """The mask of pixels holding a light's image (see :func:`light_image_pixel_mask`)."""
+    return light_image_pixel_mask

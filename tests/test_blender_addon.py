@@ -16,7 +16,7 @@ import os
 import subprocess
 import sys
 import threading
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -731,11 +731,15 @@ def _cycles_reference_module() -> Any:
 @pytest.mark.parametrize(
     "name", ["spot_box_occluder", "narrow_beam_5deg", "camera_in_dense_beam", "two_coloured_spots"]
 )
-def test_addon_volumetrics_match_converged_cycles(tmp_path: Path, name: str) -> None:
+def test_addon_volumetrics_match_converged_cycles(
+    tmp_path: Path, name: str, light_pixels: Callable[..., list[list[bool]]]
+) -> None:
     """The .blend as a user would build it (the same bpy scene the Cycles
     references were rendered from: spots, black occluders, world Volume Scatter,
     camera) through the add-on's own gather and compute: `inscatter` within 1 %
-    relative RMSE of the converged Cycles render (issue 5, fidelity)."""
+    relative RMSE of the converged Cycles render (issue 5, fidelity), leaving out
+    the pixels that hold a spot's image, where Cycles loses light
+    (docs/cycles-conventions.md §2; at most two per light)."""
     data = REPO / "tests" / "data" / "cycles"
     ref_mod = _cycles_reference_module()
     scene = json.loads((data / f"{name}.json").read_text())
@@ -751,8 +755,14 @@ def test_addon_volumetrics_match_converged_cycles(tmp_path: Path, name: str) -> 
     import numpy as np
 
     ref = ref_mod.read_exr_rgb(str(data / f"{name}.exr")).astype("float64")
-    rmse = float(np.sqrt(np.mean((got - ref) ** 2)) / np.sqrt(np.mean(ref**2)))
-    print(f"{name} through the add-on: relative RMSE {rmse:.4%}")
+    report = json.loads((out / "report.json").read_text())
+    at_light = np.array(light_pixels(report, *ref.shape[:2]), dtype=bool)
+    assert at_light.sum() <= 2 * max(1, len(report["stats"].get("light_images", [])))
+    keep = ~at_light
+    rmse = float(np.sqrt(np.mean((got[keep] - ref[keep]) ** 2)) / np.sqrt(np.mean(ref[keep] ** 2)))
+    rmse_all = float(np.sqrt(np.mean((got - ref) ** 2)) / np.sqrt(np.mean(ref**2)))
+    n_light = int(at_light.sum())
+    print(f"{name} via the add-on: relative RMSE {rmse:.4%} without {n_light} light pixels, {rmse_all:.4%} over all")
     assert rmse <= 0.01
 
 
