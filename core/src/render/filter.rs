@@ -854,37 +854,19 @@ mod adaptive_tests {
     /// in θ, with θ split at the window's corners (where ρ_max(θ) has kinks).
     fn brute_polar(filter: &PixelFilter, (px, py): (f64, f64), a: f64, b: f64, cx: f64, cy: f64) -> f64 {
         let r = filter.radius();
-        let gl = |n: usize| -> Vec<(f64, f64)> {
-            // Gauss–Legendre by Newton on P_n.
-            (0..n)
-                .map(|i| {
-                    let mut x = (PI * (i as f64 + 0.75) / (n as f64 + 0.5)).cos();
-                    for _ in 0..100 {
-                        let (mut p0, mut p1) = (1.0, x);
-                        for k in 2..=n {
-                            let p2 = ((2 * k - 1) as f64 * x * p1 - (k - 1) as f64 * p0) / k as f64;
-                            p0 = p1;
-                            p1 = p2;
-                        }
-                        let dp = n as f64 * (x * p1 - p0) / (x * x - 1.0);
-                        let dx = p1 / dp;
-                        x -= dx;
-                        if dx.abs() < 1e-16 {
-                            break;
-                        }
-                    }
-                    let (mut p0, mut p1) = (1.0, x);
-                    for k in 2..=n {
-                        let p2 = ((2 * k - 1) as f64 * x * p1 - (k - 1) as f64 * p0) / k as f64;
-                        p0 = p1;
-                        p1 = p2;
-                    }
-                    let dp = n as f64 * (x * p1 - p0) / (x * x - 1.0);
-                    (x, 2.0 / ((1.0 - x * x) * dp * dp))
+        // Composite 8-point Gauss–Legendre (the module's `GL8`) on 8 panels, in ρ
+        // and in each of 16 parts of every θ piece.
+        let composite = |panels: usize| -> Vec<(f64, f64)> {
+            (0..panels)
+                .flat_map(|k| {
+                    GL8.iter().map(move |&(z, g)| {
+                        let (lo, hi) = (k as f64 / panels as f64, (k + 1) as f64 / panels as f64);
+                        (2.0 * (lo + 0.5 * (hi - lo) * (z + 1.0)) - 1.0, g / panels as f64)
+                    })
                 })
                 .collect()
         };
-        let nodes = gl(48);
+        let nodes = composite(8);
         let (x0, x1, y0, y1) = (cx - r, cx + r, cy - r, cy + r);
         let mut cuts: Vec<f64> = [(x0, y0), (x1, y0), (x0, y1), (x1, y1)]
             .iter()
