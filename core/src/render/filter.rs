@@ -836,6 +836,45 @@ mod adaptive_tests {
         }
     }
 
+    /// Image size of the toy tests, px.
+    const TOY_SIZE: (usize, usize) = (12, 10);
+
+    /// The brightest centre sample within ±2 px of pixel `i` (the window scale).
+    fn toy_window_max(f: &dyn Fn(f64, f64) -> f64, i: usize) -> f64 {
+        let (w, h) = TOY_SIZE;
+        let (x, y) = ((i % w) as i64, (i / w) as i64);
+        let mut m = 0.0f64;
+        for dy in -2..=2i64 {
+            for dx in -2..=2i64 {
+                let (nx, ny) = (x + dx, y + dy);
+                if nx >= 0 && ny >= 0 && nx < w as i64 && ny < h as i64 {
+                    m = m.max(f(nx as f64 + 0.5, ny as f64 + 0.5).abs());
+                }
+            }
+        }
+        m
+    }
+
+    /// Every pixel of the toy image `f` through the adaptive filter.
+    fn filter_toy(f: &(dyn Fn(f64, f64) -> f64 + Sync), tol: f64, lights: &[(f64, f64)]) -> (Vec<FilteredPixel<Toy>>, AdaptiveFilterStats) {
+        let (w, h) = TOY_SIZE;
+        let scale_of = |i: usize| toy_window_max(f, i);
+        let job = AdaptiveFilterJob {
+            filter: PixelFilter::default(),
+            width: w,
+            height: h,
+            tolerance: tol,
+            window_scale: &scale_of,
+            light_images: lights,
+        };
+        let flagged: Vec<usize> = (0..w * h).collect();
+        let sample = |x: f64, y: f64| Toy {
+            l: [f(x, y); 3],
+            weight: 0.0,
+        };
+        filter_adaptive(&job, &flagged, &sample)
+    }
+
     /// Brute force: n×n midpoint rule of f·w over the window, normalised.
     fn brute(filter: &PixelFilter, f: &dyn Fn(f64, f64) -> f64, cx: f64, cy: f64, n: usize) -> f64 {
         let nodes = filter.nodes(n);
@@ -887,20 +926,16 @@ mod adaptive_tests {
                     let th = 0.5 * (t0 + t1) + 0.5 * (t1 - t0) * zt;
                     let (c, s) = (th.cos(), th.sin());
                     // Distance from the point to the window's boundary along θ.
-                    let tx = if c > 0.0 {
-                        (x1 - px) / c
-                    } else if c < 0.0 {
-                        (x0 - px) / c
-                    } else {
-                        f64::INFINITY
+                    let reach = |d: f64, lo: f64, hi: f64| {
+                        if d > 0.0 {
+                            hi / d
+                        } else if d < 0.0 {
+                            lo / d
+                        } else {
+                            f64::INFINITY
+                        }
                     };
-                    let ty = if s > 0.0 {
-                        (y1 - py) / s
-                    } else if s < 0.0 {
-                        (y0 - py) / s
-                    } else {
-                        f64::INFINITY
-                    };
+                    let (tx, ty) = (reach(c, x0 - px, x1 - px), reach(s, y0 - py, y1 - py));
                     let rmax = tx.min(ty);
                     for &(zr, wr) in &nodes {
                         let rho = 0.5 * rmax * (zr + 1.0);
@@ -919,35 +954,12 @@ mod adaptive_tests {
         // f = a/ρ + b about a light's image: inside a pixel, and on a pixel
         // boundary (as the spot of the Cycles scene `spot_box_occluder`).
         let filter = PixelFilter::default();
-        let (w, h) = (12usize, 10usize);
+        let w = TOY_SIZE.0;
         for (light, tol) in [((5.37, 4.81), 1e-2), ((6.0, 4.2), 1e-2), ((5.37, 4.81), 1e-3)] {
             let (a, b) = (0.05, 0.1);
             let f = move |x: f64, y: f64| a / (x - light.0).hypot(y - light.1) + b;
-            let scale_of = |i: usize| -> f64 {
-                let (x, y) = ((i % w) as i64, (i / w) as i64);
-                let mut m = 0.0f64;
-                for dy in -2..=2i64 {
-                    for dx in -2..=2i64 {
-                        m = m.max(f((x + dx) as f64 + 0.5, (y + dy) as f64 + 0.5));
-                    }
-                }
-                m
-            };
-            let lights = [light];
-            let job = AdaptiveFilterJob {
-                filter,
-                width: w,
-                height: h,
-                tolerance: tol,
-                window_scale: &scale_of,
-                light_images: &lights,
-            };
-            let flagged: Vec<usize> = (0..w * h).collect();
-            let sample = |x: f64, y: f64| Toy {
-                l: [f(x, y); 3],
-                weight: 0.0,
-            };
-            let (out, stats) = filter_adaptive(&job, &flagged, &sample);
+            let scale_of = |i: usize| toy_window_max(&f, i);
+            let (out, stats) = filter_toy(&f, tol, &[light]);
             let mut honest = 0;
             let mut worst = 0.0f64;
             for p in &out {
@@ -982,34 +994,9 @@ mod adaptive_tests {
 
     fn check(name: &str, f: &(dyn Fn(f64, f64) -> f64 + Sync), tol: f64, lights: &[(f64, f64)], expect_honest: f64) {
         let filter = PixelFilter::default();
-        let (w, h) = (12usize, 10usize);
-        let scale_of = |i: usize| -> f64 {
-            let (x, y) = ((i % w) as i64, (i / w) as i64);
-            let mut m = 0.0f64;
-            for dy in -2..=2i64 {
-                for dx in -2..=2i64 {
-                    let (nx, ny) = (x + dx, y + dy);
-                    if nx >= 0 && ny >= 0 && nx < w as i64 && ny < h as i64 {
-                        m = m.max(f(nx as f64 + 0.5, ny as f64 + 0.5).abs());
-                    }
-                }
-            }
-            m
-        };
-        let job = AdaptiveFilterJob {
-            filter,
-            width: w,
-            height: h,
-            tolerance: tol,
-            window_scale: &scale_of,
-            light_images: lights,
-        };
-        let flagged: Vec<usize> = (0..w * h).collect();
-        let sample = |x: f64, y: f64| Toy {
-            l: [f(x, y); 3],
-            weight: 0.0,
-        };
-        let (out, stats) = filter_adaptive(&job, &flagged, &sample);
+        let (w, h) = TOY_SIZE;
+        let scale_of = |i: usize| toy_window_max(f, i);
+        let (out, stats) = filter_toy(f, tol, lights);
         assert_eq!(out.len(), w * h);
         let mut honest = 0;
         let mut worst = 0.0f64;
