@@ -206,7 +206,6 @@ struct Cell {
     k: i64,
     l: i64,
     size: i64,
-    depth: u8,
     /// Sample indices of the corners (k,l), (k+s,l), (k,l+s), (k+s,l+s).
     corners: [u32; 4],
     /// Index of the first of four children, 0 when the cell is a leaf.
@@ -223,7 +222,6 @@ struct Cell {
 
 /// Where a new cell comes from.
 struct CellOrigin {
-    depth: u8,
     /// Tolerance scale (see [`Cell::scale`]).
     scale: f64,
     /// Its root; `None` for a root.
@@ -352,7 +350,7 @@ struct TileLattice<'a, S> {
     /// Memoised window scales by pixel index.
     scales: HashMap<usize, f64>,
     /// Per-sample weight sums while a pixel is accumulated (all 0 between pixels).
-    scratch: std::cell::RefCell<Vec<f64>>,
+    scratch: Vec<f64>,
 }
 
 impl<S: FilterSample> TileLattice<'_, S> {
@@ -402,7 +400,6 @@ impl<S: FilterSample> TileLattice<'_, S> {
     /// Adds the cell of side `size` with corner (k, l).
     fn new_cell(&mut self, k: i64, l: i64, size: i64, origin: CellOrigin) -> u32 {
         let CellOrigin {
-            depth,
             scale,
             root,
             parent_deviation,
@@ -452,7 +449,6 @@ impl<S: FilterSample> TileLattice<'_, S> {
             k,
             l,
             size,
-            depth,
             corners,
             child: 0,
             flat,
@@ -501,7 +497,6 @@ impl<S: FilterSample> TileLattice<'_, S> {
                 c.l + dl,
                 h,
                 CellOrigin {
-                    depth: c.depth + 1,
                     scale: c.scale,
                     root: Some(c.root),
                     parent_deviation: Some((dev, t_dev)),
@@ -529,12 +524,12 @@ impl<S: FilterSample> TileLattice<'_, S> {
     }
 
     /// The filtered sample of a pixel over the leaves of its window.
-    fn accumulate(&self, px: &PixelState) -> S {
+    fn accumulate(&mut self, px: &PixelState) -> S {
         let (kc, lc, weight) = (px.kc, px.lc, px.weight);
         // A lattice point is a corner of up to four leaves: its weights are
         // summed first (in `scratch`, indexed by sample), so each sample is
         // accumulated once.
-        let mut scratch = self.scratch.borrow_mut();
+        let scratch = &mut self.scratch;
         scratch.resize(self.samples.len(), 0.0);
         let mut touched: Vec<u32> = Vec::new();
         let mut stack = px.roots.clone();
@@ -570,7 +565,7 @@ impl<S: FilterSample> TileLattice<'_, S> {
         }
     }
 
-    fn finish(&self, px: &PixelState, err: [f64; 3]) -> FilteredPixel<S> {
+    fn finish(&mut self, px: &PixelState, err: [f64; 3]) -> FilteredPixel<S> {
         let value = self.accumulate(px);
         let own = value.own_error();
         FilteredPixel {
@@ -599,7 +594,6 @@ impl<S: FilterSample> TileLattice<'_, S> {
                         None => {
                             let scale = self.root_scale(k, l);
                             let origin = CellOrigin {
-                                depth: 0,
                                 scale,
                                 root: None,
                                 parent_deviation: None,
@@ -758,7 +752,7 @@ pub(crate) fn filter_adaptive<S: FilterSample>(
                 cells: Vec::with_capacity(4096),
                 roots: HashMap::default(),
                 scales: HashMap::default(),
-                scratch: std::cell::RefCell::new(Vec::with_capacity(4096)),
+                scratch: Vec::with_capacity(4096),
             },
             |lattice, pixels| {
                 lattice.points.clear();
