@@ -13,7 +13,7 @@
 //! **Adaptive grid with error control.** The domain is split at the horizon
 //! θ_h (the radiance has a kink or a jump there: rays below it end on the
 //! ground) into two k-d trees, each starting from 8 × 8 cells. A cell's value
-//! is bilinear in its four corners. At the midpoints of its edges and its
+//! is first bilinear in its four corners (quadratic cells below). At the midpoints of its edges and its
 //! centre the model is compared with the bilinear value; a cell is split in
 //! θ where the edges along θ miss `tolerance × Y` in any channel (Y the
 //! luminance at that point), in Δφ where the edges along Δφ
@@ -67,7 +67,7 @@
 //! **Resampling.** Each pixel (Cycles' `direction_to_equirectangular`: centre
 //! column towards +X, top row the zenith) maps to (θ, Δφ); the quadtree is
 //! descended to its cell and interpolated. A row has one θ, so within a cell
-//! the interpolant along the row is linear in Δφ: it is set up once
+//! the interpolant along the row is a polynomial of degree ≤ 2 in Δφ: it is set up once
 //! per run of pixels sharing a cell, and the phase weights `p_k(μ)` of the
 //! whole row are computed first in branch-free loops.
 //!
@@ -453,6 +453,12 @@ type Fit = (Support, LeafKind, Misses);
 /// current support, form and misses.
 type Trial = (Cell, u32, Support, LeafKind, Misses);
 
+/// The positions, in quarters of the cell, of its grid at half the
+/// support's spacing along a direction that is quadratic or linear.
+fn grid_quarters(quad: bool) -> &'static [u32] {
+    if quad { &[0, 1, 2, 3, 4] } else { &[0, 2, 4] }
+}
+
 /// A placeholder for a node that is about to be decided.
 fn placeholder_support() -> Support {
     Support {
@@ -540,10 +546,8 @@ impl Half {
     /// miss, relative to the luminance there (but not less than `floor`),
     /// at each check point, grouped as (along θ, along Δφ, centre), for the
     /// interpolant in the channels and, where every component can be written
-    /// as luminance × chromaticity, in those. The check points are the
-    /// evaluated points the support does not use: the θ-midpoints of the
-    /// constant-Δφ edges (linear) or the quarter points there (quadratic),
-    /// the Δφ-midpoints of the constant-θ edges, and the centre.
+    /// as luminance × chromaticity, in those. The check points are those of
+    /// [`Self::check_points`] that the support does not use.
     fn misses(
         &self,
         cache: &HashMap<(u32, u32), u32>,
@@ -579,13 +583,12 @@ impl Half {
         // interpolation in one direction + the other's misses carried
         // inwards) and count for the linear direction, or as the centre
         // (a cross term) when both are alike.
-        let fractions = |quad: bool| -> &'static [f64] { if quad { &[0.0, 0.25, 0.5, 0.75, 1.0] } else { &[0.0, 0.5, 1.0] } };
-        let on_support = |x: f64, quad: bool| x == 0.0 || x == 1.0 || (quad && x == 0.5);
+        let on_support = |quarter: u32, quad: bool| quarter == 0 || quarter == 4 || (quad && quarter == 2);
         let (mut along_u, mut along_v, mut both) = (Vec::new(), Vec::new(), Vec::new());
-        for &ss in fractions(support.quad_u) {
-            for &tt in fractions(support.quad_v) {
-                let (su_line, sv_line) = (on_support(ss, support.quad_u), on_support(tt, support.quad_v));
-                let point = ((ss * f64::from(c.su)) as u32, (tt * f64::from(c.sv)) as u32, ss, tt);
+        for &i in grid_quarters(support.quad_u) {
+            for &j in grid_quarters(support.quad_v) {
+                let (su_line, sv_line) = (on_support(i, support.quad_u), on_support(j, support.quad_v));
+                let point = (c.su * i / 4, c.sv * j / 4, f64::from(i) / 4.0, f64::from(j) / 4.0);
                 match (su_line, sv_line) {
                     (true, true) => {}
                     (false, true) => along_u.push(point),
@@ -602,12 +605,13 @@ impl Half {
         }
     }
 
-    /// The points [`Self::misses`] checks `support` at, as tick offsets in the cell.
+    /// The points of the cell's grid at half the support's spacing (θ and
+    /// Δφ quarters where quadratic, halves where linear), as tick offsets in
+    /// the cell: the support's own points and the check points of [`Self::misses`].
     fn check_points(c: &Cell, support: &Support) -> Vec<(u32, u32)> {
-        let fractions = |quad: bool| -> &'static [u32] { if quad { &[0, 1, 2, 3, 4] } else { &[0, 2, 4] } };
         let mut out = Vec::new();
-        for &i in fractions(support.quad_u) {
-            for &j in fractions(support.quad_v) {
+        for &i in grid_quarters(support.quad_u) {
+            for &j in grid_quarters(support.quad_v) {
                 out.push((c.su * i / 4, c.sv * j / 4));
             }
         }
