@@ -966,6 +966,56 @@ impl AtmosphereParams {
         (value, error, evaluations)
     }
 
+    /// The signed length, m, of the part of the view ray inside the
+    /// atmosphere that sees the sun, when the observer is in the earth's
+    /// shadow (`O·s < 0`, `|O⊥| ≤ R`); `None` when the observer is lit.
+    ///
+    /// The shadow is convex and holds the observer, so along the ray it is
+    /// `[0, t_x]`, with `t_x` the exit through the cylinder wall (the larger
+    /// root of the crossing quadratic of the module docs, `c ≤ 0` there; the
+    /// flat end `P·s = 0` lies inside the earth). With the ray's part inside
+    /// the atmosphere `[t_in, t_end]`, the result is `t_end − max(t_x, t_in)`:
+    /// continuous in the direction, and ≤ 0 exactly where the whole ray is in
+    /// the shadow, where single scattering is exactly zero. Near 0 the sky
+    /// grows as this length times the scattered sunlight at the ray's end,
+    /// which is what lets the texture grid interpolate across the edge of the
+    /// fully shadowed region (the kink of the earth's shadow at twilight).
+    pub fn lit_length_m(&self, view_dir: DVec3) -> Option<f64> {
+        let len = view_dir.length();
+        if !(len.is_finite() && len > 0.0) {
+            return None;
+        }
+        let v = view_dir / len;
+        let s = self.sun_direction();
+        let view = self.observer_ray(v.z);
+        let o_s = view.r0 * s.z;
+        // |O⊥|² − R² = r0² − o_s² − R².
+        let c = view.c0 - o_s * o_s;
+        if !(o_s < 0.0 && c <= 0.0) {
+            return None;
+        }
+        let Some((t_in, t_end, _)) = view.segment() else {
+            return Some(0.0);
+        };
+        let nu = v.dot(s).clamp(-1.0, 1.0);
+        let a = (1.0 - nu) * (1.0 + nu);
+        let b = view.r0 * view.mu - o_s * nu;
+        // a t² + 2b t + c = 0 with c ≤ 0: one root ≥ 0, in a cancellation-free form.
+        let sq = (b * b - a * c).max(0.0).sqrt();
+        let t_exit = if b > 0.0 {
+            -c / (b + sq)
+        } else if a > 0.0 {
+            (sq - b) / a
+        } else {
+            f64::INFINITY
+        };
+        Some(if t_exit.is_finite() {
+            t_end - t_exit.max(t_in)
+        } else {
+            -(t_end - t_in).max(1.0)
+        })
+    }
+
     /// Rayleigh and Mie phase function values for light from the sun's centre
     /// scattered towards the observer along `view_dir` (a zero vector gives ν = 0).
     fn phases(&self, view_dir: DVec3) -> (f64, f64) {
@@ -1345,6 +1395,10 @@ impl crate::sky::texture::SkyModel for AtmosphereParams {
 
     fn horizon_zenith(&self) -> f64 {
         std::f64::consts::FRAC_PI_2 + self.horizon_dip_rad()
+    }
+
+    fn lit_length(&self, view_dir: DVec3) -> Option<f64> {
+        self.lit_length_m(view_dir)
     }
 }
 
@@ -2209,6 +2263,80 @@ mod tests {
             }
         }
         assert!(found >= 4, "only {found} views cross the shadow's edge");
+    }
+
+    #[test]
+    fn lit_length_matches_a_direct_scan_and_bounds_the_dark_sky() {
+        // ℓ = t_end − (where the ray leaves the shadow) against bisection on
+        // the direct shadow test, for observers at 0 and 20 km with the sun
+        // below their horizon; where ℓ ≤ 0 the sky must be exactly zero, and
+        // positive where ℓ is clearly positive.
+        let mut rng = 0x2545_f491_4f6c_dd1d_u64;
+        let mut uniform = || {
+            rng ^= rng << 13;
+            rng ^= rng >> 7;
+            rng ^= rng << 17;
+            (rng >> 11) as f64 / (1u64 << 53) as f64
+        };
+        let (mut dark, mut lit) = (0, 0);
+        for (e, altitude) in [(-4.0, 0.0), (-2.0, 0.0), (-6.0, 0.0), (-8.0, 20_000.0)] {
+            let p = AtmosphereParams {
+                altitude_m: altitude,
+                ..params(e)
+            };
+            let s = p.sun_direction();
+            let o = DVec3::new(0.0, 0.0, RE + altitude);
+            assert!(blocked(o, s), "sun {e}°: the observer must be in the shadow");
+            for _ in 0..150 {
+                // Mostly low views towards the anti-solar side, where the shadow's edge is.
+                let elev = -2.0 + 14.0 * uniform() * uniform();
+                let v = dir(elev, s.y.atan2(s.x) + PI * (0.4 + 0.6 * uniform()));
+                let ours = p.lit_length_m(v).expect("observer in the shadow");
+                assert!(ours.is_finite());
+                let Some((t_in, t_end, _)) = ref_segment(o, v) else { continue };
+                // Direct: the exit from the shadow by a scan and bisection.
+                let n = 4000;
+                let mut exit = f64::INFINITY;
+                for i in 1..=n {
+                    let (a, b) = (t_end * (i - 1) as f64 / n as f64, t_end * i as f64 / n as f64);
+                    if blocked(o + a * v, s) && !blocked(o + b * v, s) {
+                        let (mut lo, mut hi) = (a, b);
+                        for _ in 0..80 {
+                            let m = 0.5 * (lo + hi);
+                            if blocked(o + m * v, s) { lo = m } else { hi = m }
+                        }
+                        exit = 0.5 * (lo + hi);
+                        break;
+                    }
+                }
+                if exit.is_finite() {
+                    let direct = t_end - exit.max(t_in);
+                    assert!(
+                        (ours - direct).abs() < 1e-6 * t_end.max(1.0),
+                        "sun {e}°, elev {elev:.3}°: ℓ = {ours} m, direct {direct} m"
+                    );
+                } else {
+                    assert!(ours <= 1e-6 * t_end, "sun {e}°, elev {elev:.3}°: no exit found, ℓ = {ours} m");
+                }
+                let (sky, _, _) = p.sky_spectral_radiance(v, 1e-4);
+                if ours <= 0.0 {
+                    assert!(
+                        sky.iter().all(|x| *x == 0.0),
+                        "sun {e}°, elev {elev:.3}°: ℓ = {ours} m but the sky is not dark"
+                    );
+                    dark += 1;
+                } else if ours > 1.0 {
+                    assert!(
+                        sky.iter().any(|x| *x > 0.0),
+                        "sun {e}°, elev {elev:.3}°: ℓ = {ours} m but the sky is dark"
+                    );
+                    lit += 1;
+                }
+            }
+            // A lit observer has no lit length.
+            assert_eq!(params(2.0).lit_length_m(dir(5.0, 1.0)), None);
+        }
+        assert!(dark >= 20 && lit >= 20, "only {dark} dark and {lit} lit views");
     }
 
     #[test]

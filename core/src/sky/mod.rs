@@ -53,6 +53,12 @@ pub struct SkyReport {
     pub pixel_limited_cells: usize,
     /// Their largest interpolation miss, relative to luminance.
     pub pixel_limited_error: f64,
+    /// Pixels of those cells, each evaluated directly at its centre (sky model
+    /// evaluations beyond `evaluations`).
+    pub direct_pixels: usize,
+    /// Grid points whose view ray lies wholly in the earth's shadow: exactly
+    /// zero in single scattering, so no integral was computed there.
+    pub shadowed_points: usize,
     /// The colour path (spectral or a reduced wavelength set) and the measurement that chose it.
     pub colour: texture::ColourDecision,
     /// The sampling used (`adaptive` grid or Klassen's coherence baseline).
@@ -122,9 +128,24 @@ pub fn render_world_with(
                 ),
             );
             plan.left_out(
-                format!("per-pixel integrals ({} pixels)", tex.width * tex.height),
+                format!("per-pixel integrals ({} of {} pixels)", tex.width * tex.height - tex.direct_pixels, tex.width * tex.height),
                 "the sky depends only on the view zenith angle and the azimuth from the sun: pixels are interpolated from the grid within the tolerance",
             );
+            if tex.shadowed_points > 0 {
+                plan.left_out(
+                    format!("sky integrals at {} grid points", tex.shadowed_points),
+                    "their view rays lie wholly in the earth's shadow (found in closed form), where single scattering is exactly zero",
+                );
+            }
+            if tex.direct_pixels > 0 {
+                plan.computed(
+                    "pixels evaluated directly",
+                    format!(
+                        "{} pixels in {} grid cells that reached the pixel size still missing the tolerance (a step in the sky) are evaluated at their centres",
+                        tex.direct_pixels, tex.pixel_limited_cells
+                    ),
+                );
+            }
         }
         texture::Integrator::KlassenCoherence { threshold } => {
             plan.computed(
@@ -173,6 +194,8 @@ pub fn render_world_with(
         sun_disc_pixels: tex.sun_pixels,
         pixel_limited_cells: tex.pixel_limited_cells,
         pixel_limited_error: tex.pixel_limited_error,
+        direct_pixels: tex.direct_pixels,
+        shadowed_points: tex.shadowed_points,
         colour: tex.colour.clone(),
         integrator: options.integrator,
         multiple_scattering: ms.is_some(),

@@ -53,6 +53,31 @@
 //! split in the other direction if it misses there. Rows of pixels see a
 //! polynomial of degree ≤ 2 in Δφ within a cell.
 //!
+//! **Lit-length cells (twilight).** With the sun below the observer's
+//! horizon the observer is in the earth's shadow, and a view ray sees
+//! sunlight only beyond the point where it leaves the shadow: its sunlit
+//! length ℓ = t_end − t_exit ([`SkyModel::lit_length`], closed form). Where
+//! ℓ ≤ 0 (low views towards the anti-solar side) the single-scattered sky
+//! is exactly zero — such grid points are not integrated at all — and
+//! beyond, it grows as ℓ × the light scattered per metre at the ray's end:
+//! a kink along a curve across (θ, Δφ) that no polynomial cell follows (at
+//! −4° it left 941 cells at the pixel size, whose 6 434 pixels were
+//! evaluated directly). The light scattered per metre S/ℓ is smooth across
+//! that curve, so where the other forms miss, a cell is tried as
+//! ℓ × (S/ℓ interpolated, in the channels or as log-luminance ×
+//! chromaticity), with ℓ computed exactly at each pixel. At support points
+//! with ℓ ≤ 0 the ratio is continued by the least-squares plane through
+//! the cell's sunlit support points ([`extend_plane`]). Such a form is
+//! exact wherever ℓ ≤ 0, so check points there prove nothing: a group of
+//! check points (along θ, along Δφ, centre) without a sunlit one counts as
+//! an unbounded miss. At 2048 × 1024, tolerance 1e-3, this took the sky
+//! stage at −6° from 379 to 301 ms and at −4° from 380 to 344 ms (at −4°:
+//! 13 313 evaluations + 1 816 direct pixels instead of 20 470 + 6 434;
+//! 1 165 grid points skipped in the shadow); at −2° it is unchanged
+//! (317 vs 319 ms): there the rays near the anti-solar point run almost
+//! parallel to the shadow's edge, ℓ jumps by thousands of km per degree
+//! and S/ℓ varies by orders of magnitude within a pixel.
+//!
 //! **Error split.** The grid refines to [`GRID_TOLERANCE_FRACTION`] (0.8) of
 //! the tolerance left after the colour path's measured error (0 for the
 //! spectral path), because its check points estimate rather than bound the
@@ -140,6 +165,16 @@ pub trait SkyModel: Sync {
     fn horizon_zenith(&self) -> f64 {
         PI / 2.0
     }
+    /// Where the sky is sunlight scattered once with the observer in the
+    /// earth's shadow: the signed length ℓ, m, of the view ray's sunlit
+    /// part. Every component of [`Self::sky_components`] is exactly zero
+    /// where ℓ ≤ 0, ℓ is continuous in the direction, and the components
+    /// are ≈ ℓ × (the scattered sunlight per metre), smooth across ℓ = 0,
+    /// which the grid interpolates instead ([`LeafKind::Lit`]). `None` (the
+    /// default): no such structure.
+    fn lit_length(&self, _view_dir: DVec3) -> Option<f64> {
+        None
+    }
 }
 
 /// Settings of a world texture.
@@ -189,6 +224,9 @@ pub struct WorldTexture {
     /// Pixels in pixel-limited cells, evaluated directly at their centre
     /// instead of interpolated across the step.
     pub direct_pixels: usize,
+    /// Grid points whose view ray lies wholly in the earth's shadow
+    /// ([`SkyModel::lit_length`] ≤ 0): exactly zero, no integral (not in `evaluations`).
+    pub shadowed_points: usize,
 }
 
 /// Most phase-free components a sky model may return.
@@ -219,6 +257,18 @@ enum LeafKind {
     /// exponentially across the cell (extinction towards the horizon,
     /// twilight), where the bilinear interpolant needs far smaller cells.
     Log,
+    /// The components over the sunlit length ℓ of the view ray
+    /// ([`SkyModel::lit_length`]), bilinear (or quadratic) in the channels,
+    /// times ℓ at the pixel (0 where ℓ ≤ 0): the sky at twilight is zero
+    /// where the whole ray is in the earth's shadow and grows as ℓ beyond,
+    /// a kink no polynomial in (θ, Δφ) follows, while the sunlight
+    /// scattered per metre is smooth across it. At points where ℓ ≤ 0 the
+    /// ratio is undefined; it is set to the mean of the cell's sunlit
+    /// points (their values there only matter multiplied by a small ℓ on
+    /// the sunlit side, and the check points measure the result).
+    Lit,
+    /// [`Self::Lit`] with the ratio as luminance × chromaticity, as in [`Self::Log`].
+    LitLog,
     /// The cell reached the pixel size still missing the tolerance (a step):
     /// its pixels are evaluated directly.
     PixelLimited,
@@ -240,17 +290,19 @@ struct Support {
 }
 
 impl Support {
+    /// Which of the nine slots the interpolant uses.
+    fn used_slots(&self) -> [bool; 9] {
+        std::array::from_fn(|i| match i {
+            0..=3 => true,
+            4 | 5 => self.quad_u,
+            6 | 7 => self.quad_v,
+            _ => self.quad_u && self.quad_v,
+        })
+    }
     /// The points the interpolant uses.
     fn used(&self) -> impl Iterator<Item = u32> + '_ {
-        self.points.iter().enumerate().filter_map(|(i, &p)| {
-            let needed = match i {
-                0..=3 => true,
-                4 | 5 => self.quad_u,
-                6 | 7 => self.quad_v,
-                _ => self.quad_u && self.quad_v,
-            };
-            needed.then_some(p)
-        })
+        let used = self.used_slots();
+        self.points.iter().zip(used).filter_map(|(&p, u)| u.then_some(p))
     }
 }
 
@@ -272,6 +324,8 @@ struct Components {
     /// Per point and component: the natural logarithm of its luminance (NaN
     /// where that is not positive) and its channels divided by the luminance.
     log_lum: Vec<(f64, [f64; 3])>,
+    /// Per point: the sunlit length ℓ of its view ray ([`SkyModel::lit_length`]), NaN if none.
+    lit: Vec<f64>,
 }
 
 impl Components {
@@ -308,24 +362,84 @@ impl Components {
         }
         mask
     }
-    /// Σ_k w_k·S_k with each component written as luminance × chromaticity
-    /// (channels over luminance): where its luminance is positive at every
-    /// point of the support ([`Self::log_mask`]), the logarithm of the
-    /// luminance and the chromaticity are interpolated, elsewhere the channels.
-    fn interpolate_log(&self, support: &Support, w: &[f64], s: f64, t: f64) -> [f64; 3] {
+    /// Whether the [`LeafKind::Lit`] forms apply to the support: ℓ is known
+    /// at every point it uses and positive at one at least (a cell whose
+    /// rays are all in the shadow is exactly zero, and linear).
+    fn lit_applies(&self, support: &Support) -> bool {
+        support.used().all(|p| self.lit[p as usize].is_finite()) && support.used().any(|p| self.lit[p as usize] > 0.0)
+    }
+    /// What the leaf of form `kind` interpolates for component `j` at the
+    /// nine support points: the channels (or chromaticity), and for the
+    /// log forms the log-luminance, of the component ([`LeafKind::Linear`],
+    /// [`LeafKind::Log`]) or of the component over ℓ ([`LeafKind::Lit`],
+    /// [`LeafKind::LitLog`]; at points with ℓ ≤ 0 the mean over the sunlit
+    /// points used). A log form falls back to the channels for a component
+    /// whose luminance is not positive where it is needed.
+    fn support_values(&self, support: &Support, kind: LeafKind, j: usize) -> ([[f64; 3]; 9], Option<[f64; 9]>) {
         let k = self.k();
-        let mask = self.log_mask(support);
+        let at = |p: u32| p as usize * k + j;
+        let lit = matches!(kind, LeafKind::Lit | LeafKind::LitLog);
+        let log = matches!(kind, LeafKind::Log | LeafKind::LitLog);
+        let used = support.used_slots();
+        // The slots whose values are the component's own (all but the shadowed ones of a
+        // lit form), and those of them the interpolant uses (what the others are fitted to).
+        let own: [bool; 9] = std::array::from_fn(|i| !lit || self.lit[support.points[i] as usize] > 0.0);
+        let fit: [bool; 9] = std::array::from_fn(|i| used[i] && own[i]);
+        let ln_lit = |i: usize| if lit { self.lit[support.points[i] as usize].ln() } else { 0.0 };
+        if log && (0..9).all(|i| !fit[i] || self.log_lum[at(support.points[i])].0.is_finite()) {
+            let mut ln_y = [0.0; 9];
+            let mut chroma = [[0.0; 3]; 9];
+            for i in (0..9).filter(|&i| own[i]) {
+                let (l, c) = self.log_lum[at(support.points[i])];
+                if l.is_finite() {
+                    (ln_y[i], chroma[i]) = (l - ln_lit(i), c);
+                }
+            }
+            if lit {
+                extend_plane(&fit, &own, &mut ln_y);
+                for ch in 0..3 {
+                    let mut v = chroma.map(|c| c[ch]);
+                    extend_plane(&fit, &own, &mut v);
+                    for (c, x) in chroma.iter_mut().zip(v) {
+                        c[ch] = x;
+                    }
+                }
+            }
+            return (chroma, Some(ln_y));
+        }
+        let mut vals = support.points.map(|p| self.values[at(p)]);
+        if lit {
+            for i in (0..9).filter(|&i| own[i]) {
+                let l = self.lit[support.points[i] as usize];
+                vals[i] = vals[i].map(|x| x / l);
+            }
+            for ch in 0..3 {
+                let mut v = vals.map(|c| c[ch]);
+                extend_plane(&fit, &own, &mut v);
+                for (c, x) in vals.iter_mut().zip(v) {
+                    c[ch] = x;
+                }
+            }
+        }
+        (vals, None)
+    }
+    /// Σ_k w_k·S_k interpolated in the form `kind` ([`Self::support_values`])
+    /// at (s, t), with ℓ = `lit` there for the lit forms.
+    fn interpolate_form(&self, support: &Support, kind: LeafKind, w: &[f64], s: f64, t: f64, lit: f64) -> [f64; 3] {
+        let scale = match kind {
+            LeafKind::Lit | LeafKind::LitLog => lit.max(0.0),
+            _ => 1.0,
+        };
         let mut out = [0.0; 3];
-        for (j, wj) in w.iter().take(k).enumerate() {
-            let at = |c: u32| self.log_lum[c as usize * k + j];
-            let v = if mask[j] {
-                let y = cell_interpolant(&support.points.map(|c| [at(c).0; 3]), support, s, t)[0].exp();
-                cell_interpolant(&support.points.map(|c| at(c).1), support, s, t).map(|x| y * x)
-            } else {
-                cell_interpolant(&support.points.map(|c| self.values[c as usize * k + j]), support, s, t)
-            };
+        if scale == 0.0 {
+            return out;
+        }
+        for (j, wj) in w.iter().take(self.k()).enumerate() {
+            let (vals, ln_y) = self.support_values(support, kind, j);
+            let y = ln_y.map_or(1.0, |l| cell_interpolant(&l.map(|x| [x; 3]), support, s, t)[0].exp());
+            let v = cell_interpolant(&vals, support, s, t);
             for c in 0..3 {
-                out[c] += wj * v[c];
+                out[c] += wj * scale * y * v[c];
             }
         }
         out
@@ -370,6 +484,8 @@ struct RowRun {
     la: [f64; MAX_COMPONENTS],
     ld: [f64; MAX_COMPONENTS],
     le: [f64; MAX_COMPONENTS],
+    /// A lit leaf ([`LeafKind::Lit`]): the value is multiplied by ℓ⁺ at the pixel.
+    lit: bool,
 }
 
 /// One half of the domain: θ ∈ [theta0, theta1], Δφ ∈ [0, π].
@@ -417,6 +533,65 @@ fn cell_interpolant(c: &[[f64; 3]; 9], support: &Support, s: f64, t: f64) -> [f6
     out
 }
 
+/// Positions (s along θ, t along Δφ) of the nine support slots ([`Support`]).
+const SLOT_POSITIONS: [(f64, f64); 9] = [
+    (0.0, 0.0),
+    (1.0, 0.0),
+    (0.0, 1.0),
+    (1.0, 1.0),
+    (0.5, 0.0),
+    (0.5, 1.0),
+    (0.0, 0.5),
+    (1.0, 0.5),
+    (0.5, 0.5),
+];
+
+/// Sets the values of the slots that are not `own` (a lit form's shadowed
+/// points, where the ratio is undefined) to the least-squares plane
+/// `a + b·s + c·t` through the `fit` slots, extrapolated: a direction in
+/// which the fitted points do not spread (all on one line of the cell) gets
+/// no slope, and a single point gives a constant. A linear trend of the
+/// ratio (e.g. its logarithm falling towards the shadow) is continued
+/// exactly instead of flattened.
+fn extend_plane(fit: &[bool; 9], own: &[bool; 9], v: &mut [f64; 9]) {
+    let pts: Vec<(f64, f64, f64)> = (0..9)
+        .filter(|&i| fit[i])
+        .map(|i| (SLOT_POSITIONS[i].0, SLOT_POSITIONS[i].1, v[i]))
+        .collect();
+    if pts.is_empty() {
+        return;
+    }
+    let n = pts.len() as f64;
+    let (ms, mt, mv) = pts
+        .iter()
+        .fold((0.0, 0.0, 0.0), |a, p| (a.0 + p.0 / n, a.1 + p.1 / n, a.2 + p.2 / n));
+    let (mut sss, mut stt, mut sst, mut ssv, mut stv) = (0.0, 0.0, 0.0, 0.0, 0.0);
+    for &(s, t, x) in &pts {
+        let (ds, dt, dx) = (s - ms, t - mt, x - mv);
+        sss += ds * ds;
+        stt += dt * dt;
+        sst += ds * dt;
+        ssv += ds * dx;
+        stv += dt * dx;
+    }
+    const SPREAD: f64 = 1e-9;
+    let det = sss * stt - sst * sst;
+    let (b, c) = if det > SPREAD {
+        ((ssv * stt - stv * sst) / det, (stv * sss - ssv * sst) / det)
+    } else if sss > SPREAD && stt <= SPREAD {
+        (ssv / sss, 0.0)
+    } else if stt > SPREAD && sss <= SPREAD {
+        (0.0, stv / stt)
+    } else {
+        // Collinear along a diagonal, or one point: no slope.
+        (0.0, 0.0)
+    };
+    for i in (0..9).filter(|&i| !own[i]) {
+        let (s, t) = SLOT_POSITIONS[i];
+        v[i] = mv + b * (s - ms) + c * (t - mt);
+    }
+}
+
 /// Refinement limits of one half of the domain.
 struct Limits {
     /// Smallest cell extent along θ and Δφ, ticks (half an output pixel).
@@ -437,10 +612,20 @@ struct Stats {
     /// Cells that reached the pixel size without meeting the tolerance (a step: the earth's shadow, the horizon).
     pixel_limited: usize,
     pixel_limited_error: f64,
+    /// Grid points whose view ray is wholly in the earth's shadow: zero, not evaluated.
+    in_shadow: usize,
 }
 
 /// A sky evaluation at one grid point: phase-free component RGB values and the error estimate.
 type PointEval = (Vec<(Option<PhaseFunction>, [f64; 3])>, f64);
+
+/// What the grid asks of the sky at (θ, Δφ): the components
+/// ([`PointEval`]), μ = view·sun, and the sunlit length ℓ ([`SkyModel::lit_length`]).
+struct Probe<'a> {
+    eval: &'a (dyn Fn(f64, f64) -> PointEval + Sync),
+    cos_mu: &'a (dyn Fn(f64, f64) -> f64 + Sync),
+    lit: &'a (dyn Fn(f64, f64) -> Option<f64> + Sync),
+}
 
 /// A cell's largest misses at its check points, relative to luminance:
 /// (along θ, along Δφ, centre only).
@@ -499,24 +684,41 @@ impl Half {
         &mut self,
         need: &mut Vec<(u32, u32)>,
         cache: &mut HashMap<(u32, u32), u32>,
-        eval: &(dyn Fn(f64, f64) -> PointEval + Sync),
-        cos_mu: &(dyn Fn(f64, f64) -> f64 + Sync),
+        probe: &Probe,
         limits: &Limits,
         stats: &mut Stats,
     ) {
         need.retain(|key| !cache.contains_key(key));
         need.sort_unstable();
         need.dedup();
-        let values: Vec<((u32, u32), PointEval)> = need
+        // Points whose view ray is wholly in the earth's shadow (ℓ ≤ 0) are
+        // exactly zero by the model's contract ([`SkyModel::lit_length`]):
+        // no integral, once the components' phase functions are known.
+        let phases = self.comps.phases.clone();
+        let values: Vec<((u32, u32), f64, Option<PointEval>)> = need
             .par_iter()
-            .map(|&(u, v)| ((u, v), eval(self.theta(u), Half::dphi(v))))
+            .map(|&(u, v)| {
+                let (theta, dphi) = (self.theta(u), Half::dphi(v));
+                let l = (probe.lit)(theta, dphi).unwrap_or(f64::NAN);
+                let dark = !phases.is_empty() && l <= 0.0;
+                ((u, v), l, (!dark).then(|| (probe.eval)(theta, dphi)))
+            })
             .collect();
-        stats.evaluations += values.len();
-        for (key, (parts, err)) in values {
+        for (key, l, point) in values {
+            let (parts, err) = match point {
+                Some(p) => {
+                    stats.evaluations += 1;
+                    p
+                }
+                None => {
+                    stats.in_shadow += 1;
+                    (phases.iter().map(|ph| (*ph, [0.0; 3])).collect(), 0.0)
+                }
+            };
             if self.comps.phases.is_empty() {
                 self.comps.phases = parts.iter().map(|p| p.0).collect();
             }
-            let w = self.comps.weights(cos_mu(self.theta(key.0), Half::dphi(key.1)));
+            let w = self.comps.weights((probe.cos_mu)(self.theta(key.0), Half::dphi(key.1)));
             let mut total = [0.0; 3];
             for (j, (_, rgb)) in parts.iter().enumerate() {
                 for c in 0..3 {
@@ -529,6 +731,7 @@ impl Half {
                 .max(err / y.max(limits.floor_fraction * stats.brightest).max(1e-300));
             stats.brightest = stats.brightest.max(y);
             let index = (self.comps.values.len() / self.comps.k().max(1)) as u32;
+            self.comps.lit.push(l);
             for (_, rgb) in parts {
                 self.comps.values.push(rgb);
                 let y = luminance(&rgb);
@@ -555,17 +758,31 @@ impl Half {
         support: &Support,
         cos_mu: &(dyn Fn(f64, f64) -> f64 + Sync),
         floor: f64,
-        log: bool,
+        kind: LeafKind,
     ) -> Misses {
+        let lit_form = matches!(kind, LeafKind::Lit | LeafKind::LitLog);
         let miss = |pts: &[(u32, u32, f64, f64)]| -> f64 {
+            // A lit form is exact where ℓ ≤ 0, so there its check points
+            // say nothing: a group of them with no sunlit point has not
+            // measured the cell's sunlit part in its direction at all.
+            if lit_form
+                && !pts.is_empty()
+                && pts.iter().all(|&(du, dv, ..)| {
+                    self.comps.lit[cache[&(c.u0 + du, c.v0 + dv)] as usize].partial_cmp(&0.0) != Some(std::cmp::Ordering::Greater)
+                })
+            {
+                return f64::INFINITY;
+            }
             let mut worst = 0.0f64;
             for &(du, dv, ss, tt) in pts {
                 let w = self.comps.weights(cos_mu(self.theta(c.u0 + du), Half::dphi(c.v0 + dv)));
-                let truth = self.comps.combine(cache[&(c.u0 + du, c.v0 + dv)], &w);
-                let fit = if log {
-                    self.comps.interpolate_log(support, &w, ss, tt)
-                } else {
+                let point = cache[&(c.u0 + du, c.v0 + dv)];
+                let truth = self.comps.combine(point, &w);
+                let fit = if kind == LeafKind::Linear {
                     self.comps.interpolate(support, &w, ss, tt)
+                } else {
+                    self.comps
+                        .interpolate_form(support, kind, &w, ss, tt, self.comps.lit[point as usize])
                 };
                 // Relative to the luminance at the point itself.
                 let scale = luminance(&truth).abs().max(floor);
@@ -644,25 +861,25 @@ impl Half {
                 None => (false, worst(m)),
             }
         };
-        let linear = self.misses(cache, c, support, cos_mu, floor, false);
-        if worst(linear) > tol && self.comps.log_mask(support).iter().any(|m| *m) {
-            let log = self.misses(cache, c, support, cos_mu, floor, true);
-            if rank(log) < rank(linear) {
-                return (LeafKind::Log, log);
+        let mut best = (LeafKind::Linear, self.misses(cache, c, support, cos_mu, floor, LeafKind::Linear));
+        if worst(best.1) > tol && self.comps.log_mask(support).iter().any(|m| *m) {
+            let log = self.misses(cache, c, support, cos_mu, floor, LeafKind::Log);
+            if rank(log) < rank(best.1) {
+                best = (LeafKind::Log, log);
             }
         }
-        (LeafKind::Linear, linear)
+        if worst(best.1) > tol && self.comps.lit_applies(support) {
+            for kind in [LeafKind::Lit, LeafKind::LitLog] {
+                let m = self.misses(cache, c, support, cos_mu, floor, kind);
+                if rank(m) < rank(best.1) {
+                    best = (kind, m);
+                }
+            }
+        }
+        best
     }
 
-    fn build(
-        theta0: f64,
-        theta1: f64,
-        eval: &(dyn Fn(f64, f64) -> PointEval + Sync),
-        cos_mu: &(dyn Fn(f64, f64) -> f64 + Sync),
-        tol: f64,
-        limits: &Limits,
-        stats: &mut Stats,
-    ) -> Half {
+    fn build(theta0: f64, theta1: f64, probe: &Probe, tol: f64, limits: &Limits, stats: &mut Stats) -> Half {
         let mut half = Half {
             theta0,
             theta1,
@@ -672,6 +889,7 @@ impl Half {
                 phases: Vec::new(),
                 values: Vec::new(),
                 log_lum: Vec::new(),
+                lit: Vec::new(),
             },
         };
         let mut cache: HashMap<(u32, u32), u32> = HashMap::new();
@@ -704,7 +922,7 @@ impl Half {
                     need.push((c.u0 + du, c.v0 + dv));
                 }
             }
-            half.evaluate(&mut need, &mut cache, eval, cos_mu, limits, stats);
+            half.evaluate(&mut need, &mut cache, probe, limits, stats);
             // Errors are relative to the luminance at the point, but never to
             // less than a fraction of the brightest sky seen (the dark side of
             // twilight would otherwise ask for relative accuracy in the dark).
@@ -737,7 +955,7 @@ impl Half {
                 // component's luminance is positive at every corner, bilinear in
                 // its log-luminance and chromaticity (`LeafKind::Log`, checked at
                 // the same points); refinement follows whichever misses less.
-                let (mode, m) = half.best_fit(&cache, &c, &support, cos_mu, floor, tol, None);
+                let (mode, m) = half.best_fit(&cache, &c, &support, probe.cos_mu, floor, tol, None);
                 if worst(m) > tol && split_along_theta(&c, m, tol, limits) && su % 4 == 0 {
                     try_theta.push((c, idx, support, mode, m));
                 } else if worst(m) > tol && split_along_phi(&c, m, tol, limits) && sv % 4 == 0 {
@@ -748,7 +966,7 @@ impl Half {
             }
             // Quadratic in θ where that meets the tolerance along θ; such a
             // cell that misses along Δφ is then tried quadratic in Δφ too.
-            let trials = half.try_quadratic(try_theta, true, tol, &mut cache, eval, cos_mu, limits, stats);
+            let trials = half.try_quadratic(try_theta, true, tol, &mut cache, probe, limits, stats);
             for (c, idx, (support, mode, m), (quad, quad_mode, quad_m)) in trials {
                 if quad_m.0 > tol {
                     half.settle(c, idx, support, mode, m, tol, limits, stats, &mut next);
@@ -760,7 +978,7 @@ impl Half {
             }
             // Quadratic in Δφ where that meets the tolerance along Δφ (the
             // cell may still be split along θ).
-            let trials = half.try_quadratic(try_phi, false, tol, &mut cache, eval, cos_mu, limits, stats);
+            let trials = half.try_quadratic(try_phi, false, tol, &mut cache, probe, limits, stats);
             for (c, idx, (support, mode, m), (quad, quad_mode, quad_m)) in trials {
                 if quad_m.1 <= tol {
                     half.settle(c, idx, quad, quad_mode, quad_m, tol, limits, stats, &mut next);
@@ -783,8 +1001,7 @@ impl Half {
         theta: bool,
         tol: f64,
         cache: &mut HashMap<(u32, u32), u32>,
-        eval: &(dyn Fn(f64, f64) -> PointEval + Sync),
-        cos_mu: &(dyn Fn(f64, f64) -> f64 + Sync),
+        probe: &Probe,
         limits: &Limits,
         stats: &mut Stats,
     ) -> Vec<(Cell, u32, Fit, Fit)> {
@@ -801,13 +1018,13 @@ impl Half {
                 need.push((c.u0 + du, c.v0 + dv));
             }
         }
-        self.evaluate(&mut need, cache, eval, cos_mu, limits, stats);
+        self.evaluate(&mut need, cache, probe, limits, stats);
         let floor = (limits.floor_fraction * stats.brightest).max(1e-300);
         trials
             .into_iter()
             .map(|(c, idx, support, mode, m)| {
                 let quad = quadratic(&support);
-                let (quad_mode, quad_m) = self.best_fit(cache, &c, &quad, cos_mu, floor, tol, Some(theta));
+                let (quad_mode, quad_m) = self.best_fit(cache, &c, &quad, probe.cos_mu, floor, tol, Some(theta));
                 (c, idx, (support, mode, m), (quad, quad_mode, quad_m))
             })
             .collect()
@@ -934,20 +1151,15 @@ impl Half {
     fn row_run(&self, leaf: &Leaf, fu: f64) -> RowRun {
         let s = ((fu - leaf.u0) / leaf.su).clamp(0.0, 1.0);
         let k = self.comps.k();
-        // A log leaf is linear along the row in the log-luminance and the chromaticity.
-        let log = if leaf.kind == LeafKind::Log {
-            self.comps.log_mask(&leaf.support)
-        } else {
-            [false; MAX_COMPONENTS]
-        };
         let mut run = RowRun {
             a: [[0.0; 3]; MAX_COMPONENTS],
             d: [[0.0; 3]; MAX_COMPONENTS],
             e: [[0.0; 3]; MAX_COMPONENTS],
-            log,
+            log: [false; MAX_COMPONENTS],
             la: [0.0; MAX_COMPONENTS],
             ld: [0.0; MAX_COMPONENTS],
             le: [0.0; MAX_COMPONENTS],
+            lit: matches!(leaf.kind, LeafKind::Lit | LeafKind::LitLog),
         };
         let (quad_u, quad_v) = (leaf.support.quad_u, leaf.support.quad_v);
         // The lines t = 0, (½,) 1 at this s, then the polynomial in t
@@ -963,19 +1175,14 @@ impl Half {
             }
         };
         for j in 0..k.min(MAX_COMPONENTS) {
-            let p = leaf.support.points.map(|c| c as usize * k + j);
+            // A log form is polynomial along the row in the log-luminance and the chromaticity.
+            let (vals, ln_y) = self.comps.support_values(&leaf.support, leaf.kind, j);
             for c in 0..3 {
-                let (a, d, e) = if log[j] {
-                    lerp(p.map(|p| self.comps.log_lum[p].1[c]))
-                } else {
-                    lerp(p.map(|p| self.comps.values[p][c]))
-                };
-                run.a[j][c] = a;
-                run.d[j][c] = d;
-                run.e[j][c] = e;
+                (run.a[j][c], run.d[j][c], run.e[j][c]) = lerp(vals.map(|v| v[c]));
             }
-            if log[j] {
-                (run.la[j], run.ld[j], run.le[j]) = lerp(p.map(|p| self.comps.log_lum[p].0));
+            if let Some(ln_y) = ln_y {
+                run.log[j] = true;
+                (run.la[j], run.ld[j], run.le[j]) = lerp(ln_y);
             }
         }
         run
@@ -1270,8 +1477,14 @@ pub fn build_world_texture_with(model: &dyn SkyModel, settings: &TextureSettings
         min_sv: ((f64::from(TICKS) * 0.5 * (2.0 * PI / width as f64) / PI) as u32).max(1),
         floor_fraction: 1e-4,
     };
-    let upper = Half::build(0.0, horizon - SIDE, &eval, &cos_mu, grid_tol, &limits(horizon), &mut stats);
-    let lower = Half::build(horizon + SIDE, PI, &eval, &cos_mu, grid_tol, &limits(PI - horizon), &mut stats);
+    let lit = |theta: f64, dphi: f64| model.lit_length(direction(theta, dphi));
+    let probe = Probe {
+        eval: &eval,
+        cos_mu: &cos_mu,
+        lit: &lit,
+    };
+    let upper = Half::build(0.0, horizon - SIDE, &probe, grid_tol, &limits(horizon), &mut stats);
+    let lower = Half::build(horizon + SIDE, PI, &probe, grid_tol, &limits(PI - horizon), &mut stats);
 
     // Resampling. Pixel (i, j) looks along θ_j = π(j + ½)/H and φ_i = π − 2π(i + ½)/W
     // (Cycles' mapping, `equirect_direction`): Δφ depends on the column only, θ on
@@ -1324,13 +1537,18 @@ pub fn build_world_texture_with(model: &dyn SkyModel, settings: &TextureSettings
                 }
                 let run = half.row_run(&l, fu);
                 let (v0, inv_sv) = (l.v0, 1.0 / l.sv);
-                let log = l.kind == LeafKind::Log;
                 loop {
                     let t = ((columns[i].2 - v0) * inv_sv).clamp(0.0, 1.0);
                     let mut out = [0.0; 3];
+                    // ℓ⁺ at the pixel for a lit leaf (exactly 0 where its ray is all in the shadow).
+                    let scale = if run.lit {
+                        model.lit_length(direction(theta, columns[i].0)).map_or(0.0, |l| l.max(0.0))
+                    } else {
+                        1.0
+                    };
                     for c in 0..k {
-                        let mut w = weights[c * width + i];
-                        if log && run.log[c] {
+                        let mut w = weights[c * width + i] * scale;
+                        if run.log[c] {
                             w *= (run.la[c] + t * (run.ld[c] + t * run.le[c])).exp();
                         }
                         for ch in 0..3 {
@@ -1364,6 +1582,7 @@ pub fn build_world_texture_with(model: &dyn SkyModel, settings: &TextureSettings
         integrator: options.integrator,
         first_estimates: 0,
         direct_pixels: direct.into_inner(),
+        shadowed_points: stats.in_shadow,
     }
 }
 
@@ -1428,6 +1647,7 @@ fn build_coherence(model: &dyn SkyModel, settings: &TextureSettings, threshold: 
         integrator: Integrator::KlassenCoherence { threshold },
         first_estimates: counts.iter().map(|c| c.1).sum(),
         direct_pixels: 0,
+        shadowed_points: 0,
     }
 }
 
@@ -1536,6 +1756,93 @@ mod tests {
         fn sun_angular_diameter(&self) -> f64 {
             0.545f64.to_radians()
         }
+    }
+
+    /// A toy twilight: zero where a synthetic sunlit length ℓ ≤ 0 (views
+    /// below a curve from the horizon towards the sun up to 11.5° away
+    /// from it, and everything below the horizon),
+    /// ℓ × a smooth spectrum beyond — the kink of the earth's shadow, with
+    /// (`hint`) and without telling the grid about ℓ.
+    struct Twilight {
+        hint: bool,
+    }
+    impl Twilight {
+        const SUN_ELEVATION: f64 = -0.07;
+        /// ℓ, m: 100 km × (z − 0.1·(1 − x)), continuous over the sphere (the sun towards +x).
+        fn lit(d: DVec3) -> f64 {
+            1e5 * (d.z - 0.1 * (1.0 - d.x))
+        }
+    }
+    impl SkyModel for Twilight {
+        fn sky_radiance(&self, d: DVec3, _tol: f64) -> (Spectrum, Spectrum) {
+            let smooth = (-3.0 * d.z).exp() * (1.0 + 0.5 * d.x);
+            let scale = Self::lit(d).max(0.0) * smooth * 1e-6;
+            let wl = spectrum::wavelengths_nm();
+            (std::array::from_fn(|i| scale * (550.0 / wl[i]).powi(4)), [0.0; SPECTRAL_SAMPLES])
+        }
+        fn sun_direction(&self) -> DVec3 {
+            let (s, c) = Self::SUN_ELEVATION.sin_cos();
+            DVec3::new(c, 0.0, s)
+        }
+        fn sun_irradiance(&self) -> Spectrum {
+            [0.0; SPECTRAL_SAMPLES]
+        }
+        fn sun_angular_diameter(&self) -> f64 {
+            0.545f64.to_radians()
+        }
+        fn lit_length(&self, d: DVec3) -> Option<f64> {
+            self.hint.then(|| Self::lit(d))
+        }
+    }
+
+    #[test]
+    fn lit_length_cells_follow_the_kink_of_the_shadow() {
+        let settings = TextureSettings {
+            width: 512,
+            tolerance: 1e-3,
+            sun_disc: false,
+        };
+        let run = |hint: bool| {
+            let model = Twilight { hint };
+            let t = build_world_texture(&model, &settings);
+            let (w, h) = (t.width, t.height);
+            let exact: Vec<[f64; 3]> = (0..w * h)
+                .map(|p| {
+                    let d = equirect_direction((p % w) as f64 + 0.5, (p / w) as f64 + 0.5, w, h);
+                    spectrum::spectrum_to_xyz(&model.sky_radiance(d, 0.0).0)
+                })
+                .collect();
+            let (worst_y, worst_uv, _) = worst_pixel_errors(&t.rgb, &exact);
+            eprintln!(
+                "twilight toy, ℓ {}: {} evaluations, {} shadowed points, {} cells, {} at the pixel size ({} direct pixels); worst luminance {worst_y:.2e}, Δu′v′ {worst_uv:.2e}",
+                if hint { "known" } else { "unknown" },
+                t.evaluations,
+                t.shadowed_points,
+                t.cells,
+                t.pixel_limited_cells,
+                t.direct_pixels
+            );
+            (t, worst_y, worst_uv)
+        };
+        let (plain, y0, uv0) = run(false);
+        let (lit, y1, uv1) = run(true);
+        for (y, uv) in [(y0, uv0), (y1, uv1)] {
+            assert!(y <= 1e-3 && uv <= 1e-3, "luminance {y:.2e}, Δu′v′ {uv:.2e}");
+        }
+        // Without ℓ the kink is refined to the pixel size and its pixels are
+        // evaluated directly; with it the cells across the kink interpolate
+        // (measured: 739 → 116 direct pixels, 7 261 → 2 185 model calls).
+        assert_eq!(plain.shadowed_points, 0);
+        assert!(lit.shadowed_points > 0);
+        let calls = |t: &WorldTexture| t.evaluations + t.direct_pixels;
+        assert!(
+            lit.direct_pixels * 4 <= plain.direct_pixels && calls(&lit) * 3 <= calls(&plain),
+            "direct pixels {} vs {}, model calls {} vs {}",
+            lit.direct_pixels,
+            plain.direct_pixels,
+            calls(&lit),
+            calls(&plain)
+        );
     }
 
     #[test]
