@@ -55,8 +55,9 @@
 //! shadow ray's end offsets) is a hit for the shadow ray as well. Only the
 //! rest need a shadow ray through the scene BVH; the answers are the same as
 //! the shadow ray's (bounds carry relative margins far above rounding, and the
-//! shadow ray's own end offsets are accounted for). 128 × 128 cells of 32
-//! bytes per light; on the 4-spot benchmark (a 10k-triangle sphere on a floor)
+//! shadow ray's own end offsets are accounted for). Up to 128 × 128 cells of 32
+//! bytes per light (fewer for a few triangles, [`grid_cells_for`]); on the
+//! 4-spot benchmark (a 10k-triangle sphere on a floor)
 //! the grids leave 188 k of 1.42 M visibility tests to shadow rays.
 //!
 //! **Left out.** Triangles outside the light's illumination volume (tested
@@ -117,8 +118,19 @@ struct Node {
     count: u32,
 }
 
-/// Cells per axis of a point light's [`VisibilityGrid`].
+/// Most cells per axis of a point light's [`VisibilityGrid`].
 const GRID_CELLS: usize = 128;
+
+/// Cells per axis of a visibility grid over `triangles` triangles:
+/// 16·√triangles rounded up to a power of two, 16..=[`GRID_CELLS`]. Building
+/// costs cells × triangles: a floor's two triangles do not need 16 k cells
+/// (the grid was ≈ 1 ms of a 15 ms render of a 5° beam over a floor), while
+/// a 10 k-triangle set piece gets the full 128 × 128.
+fn grid_cells_for(triangles: usize) -> usize {
+    ((16.0 * (triangles as f64).sqrt()).ceil() as usize)
+        .next_power_of_two()
+        .clamp(16, GRID_CELLS)
+}
 
 /// A spot light's conservative visibility bounds per direction cell (see the
 /// module documentation).
@@ -131,7 +143,9 @@ struct VisibilityGrid {
     /// The grid spans `[−half, half]²` in the gnomonic plane.
     half: f64,
     inv_cell: f64,
-    /// Per cell (row-major, `GRID_CELLS` per row).
+    /// Cells per axis ([`grid_cells_for`]).
+    n: usize,
+    /// Per cell (row-major, `n` per row).
     cells: Vec<GridCell>,
     /// A point at distance `s ≤ shadow` from the light is only reported in
     /// shadow when the shadow ray's end offset is below this (see `classify`).
@@ -213,7 +227,7 @@ impl VisibilityGrid {
     /// The grid of a point light at `light` with unit `axis` and frame
     /// `(x, y)`, reaching `half_angle` (< 80°) off the axis, over every triangle of `meshes`.
     fn build(light: DVec3, axis: DVec3, x: DVec3, y: DVec3, half_angle: f64, meshes: &[IndexedMesh<'_>]) -> VisibilityGrid {
-        let n = GRID_CELLS;
+        let n = grid_cells_for(meshes.iter().map(|m| m.triangles.len()).sum());
         let half = half_angle.tan() * (1.0 + 1e-6) + 1e-9;
         let cell = 2.0 * half / n as f64;
         let scale = 1.0 + light.abs().max_element();
@@ -224,6 +238,7 @@ impl VisibilityGrid {
             y,
             half,
             inv_cell: 1.0 / cell,
+            n,
             cells: vec![
                 GridCell {
                     lit2: f64::INFINITY,
@@ -424,11 +439,11 @@ impl VisibilityGrid {
         let inv_z = 1.0 / z;
         let (gx, gy) = (v.dot(self.x) * inv_z, v.dot(self.y) * inv_z);
         let (fi, fj) = ((gx + self.half) * self.inv_cell, (gy + self.half) * self.inv_cell);
-        let n = GRID_CELLS as f64;
+        let n = self.n as f64;
         if !(fi >= 0.0 && fi < n && fj >= 0.0 && fj < n) {
             return None;
         }
-        let cell = &self.cells[fj as usize * GRID_CELLS + fi as usize];
+        let cell = &self.cells[fj as usize * self.n + fi as usize];
         let d2 = v.length_squared();
         if d2 < cell.lit2 {
             return Some(true);
