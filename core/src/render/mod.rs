@@ -1502,28 +1502,31 @@ fn render_channels<const C: usize>(scene: &Scene, report: &mut Report, progress:
         stats.max_rel += lap_rel;
         // Where the centre sample stands for the filtered pixel, the filter's
         // second-order term (σ²/2)·∇²v is added to it, from the 5-point
-        // Laplacian of the centre samples (interior pixels, every filtered
-        // layer alike, so that `inscatter` stays the sum of the per-light
-        // layers): what is left is O(σ⁴∇⁴v), while the error estimate keeps
-        // the whole term's size. At the frame's edge (the per-light layers
-        // have no samples outside it) the centre sample stands as it is.
-        let smooth: Vec<usize> = classified
-            .iter()
-            .enumerate()
-            .filter(|(i, c)| c.0.is_none() && i % w > 0 && i % w + 1 < w && i / w > 0 && i / w + 1 < h)
-            .map(|(i, _)| i)
-            .collect();
-        let with_filter_term = |img: &[[f32; 3]], clamp_to_one: bool| -> Vec<[f32; 3]> {
-            smooth
+        // Laplacian of the centre samples, in the layers whose smoothness the
+        // classification checked: the in-scatter (all lights and each light
+        // alike, so `inscatter` stays the sum of the per-light layers) and
+        // the view transmittance. What is left is O(σ⁴∇⁴v), while the error
+        // estimate keeps the whole term's size. With σ²/2 ≤ ¼ px² the result
+        // is a convex combination of the five samples (no clamp needed: it
+        // stays ≥ 0, and ≤ 1 for a transmittance); a wider filter keeps the
+        // centre sample, as do the frame's border pixels (the per-light layers
+        // have no samples outside it) and the layers not checked (`sun_t`,
+        // the per-light surface transmittance).
+        let smooth: Vec<usize> = if half_var <= 0.25 {
+            classified
                 .iter()
-                .map(|&i| second_order_filter_term(img, w, i, half_var, clamp_to_one))
+                .enumerate()
+                .filter(|(i, c)| c.0.is_none() && i % w > 0 && i % w + 1 < w && i / w > 0 && i / w + 1 < h)
+                .map(|(i, _)| i)
                 .collect()
+        } else {
+            Vec::new()
         };
-        let smooth_inscatter = with_filter_term(&inscatter, false);
-        let smooth_transmittance = with_filter_term(&transmittance, true);
-        let smooth_sun_t = if want_sun_t { with_filter_term(&sun_t, true) } else { Vec::new() };
-        let smooth_lights: Vec<Vec<[f32; 3]>> = light_inscatter.iter().map(|img| with_filter_term(img, false)).collect();
-        let smooth_surface_t: Vec<Vec<[f32; 3]>> = light_surface_transmittance.iter().map(|img| with_filter_term(img, true)).collect();
+        let with_filter_term =
+            |img: &[[f32; 3]]| -> Vec<[f32; 3]> { smooth.iter().map(|&i| second_order_filter_term(img, w, i, half_var)).collect() };
+        let smooth_inscatter = with_filter_term(&inscatter);
+        let smooth_transmittance = with_filter_term(&transmittance);
+        let smooth_lights: Vec<Vec<[f32; 3]>> = light_inscatter.iter().map(|img| with_filter_term(img)).collect();
         let job = filter::AdaptiveFilterJob {
             filter,
             width: w,
@@ -1564,13 +1567,7 @@ fn render_channels<const C: usize>(scene: &Scene, report: &mut Report, progress:
         for (k, &i) in smooth.iter().enumerate() {
             inscatter[i] = smooth_inscatter[k];
             transmittance[i] = smooth_transmittance[k];
-            if want_sun_t {
-                sun_t[i] = smooth_sun_t[k];
-            }
             for (img, v) in light_inscatter.iter_mut().zip(&smooth_lights) {
-                img[i] = v[k];
-            }
-            for (img, v) in light_surface_transmittance.iter_mut().zip(&smooth_surface_t) {
                 img[i] = v[k];
             }
         }
@@ -1704,14 +1701,14 @@ fn surface_transmittance_of(s: &Sample, k: usize) -> [f32; 3] {
 }
 
 /// `v + (σ²/2)·∇²v` at interior pixel `i` of the `w`-wide image `img` (5-point
-/// Laplacian, `half_var` = σ²/2 in px²): the pixel filter's effect on a smooth
-/// image to second order. Non-negative, and at most 1 for a transmittance.
-fn second_order_filter_term(img: &[[f32; 3]], w: usize, i: usize, half_var: f64, clamp_to_one: bool) -> [f32; 3] {
+/// Laplacian, `half_var` = σ²/2 in px², ≤ ¼ so that this is a convex
+/// combination of the five samples): the pixel filter's effect on a smooth
+/// image to second order.
+fn second_order_filter_term(img: &[[f32; 3]], w: usize, i: usize, half_var: f64) -> [f32; 3] {
     let at = |j: usize, c: usize| f64::from(img[j][c]);
     std::array::from_fn(|c| {
         let lap = at(i - 1, c) + at(i + 1, c) + at(i - w, c) + at(i + w, c) - 4.0 * at(i, c);
-        let v = (at(i, c) + half_var * lap).max(0.0);
-        (if clamp_to_one { v.min(1.0) } else { v }) as f32
+        (at(i, c) + half_var * lap) as f32
     })
 }
 

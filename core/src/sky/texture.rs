@@ -71,10 +71,10 @@
 //! exact wherever ℓ ≤ 0, so check points there prove nothing: a group of
 //! check points (along θ, along Δφ, centre) without a sunlit one counts as
 //! an unbounded miss. At 2048 × 1024, tolerance 1e-3, this took the sky
-//! stage at −6° from 379 to 301 ms and at −4° from 380 to 344 ms (at −4°:
-//! 13 313 evaluations + 1 816 direct pixels instead of 20 470 + 6 434;
-//! 1 165 grid points skipped in the shadow); at −2° it is unchanged
-//! (317 vs 319 ms): there the rays near the anti-solar point run almost
+//! stage at −6° from 369 to 303 ms and at −4° from 367 to 333 ms (at −4°:
+//! 13 341 evaluations + 2 180 direct pixels instead of 20 470 + 6 434;
+//! 1 295 grid points skipped in the shadow); at −2° it is unchanged
+//! (313 vs 317 ms): there the rays near the anti-solar point run almost
 //! parallel to the shadow's edge, ℓ jumps by thousands of km per degree
 //! and S/ℓ varies by orders of magnitude within a pixel.
 //!
@@ -263,9 +263,10 @@ enum LeafKind {
     /// where the whole ray is in the earth's shadow and grows as ℓ beyond,
     /// a kink no polynomial in (θ, Δφ) follows, while the sunlight
     /// scattered per metre is smooth across it. At points where ℓ ≤ 0 the
-    /// ratio is undefined; it is set to the mean of the cell's sunlit
-    /// points (their values there only matter multiplied by a small ℓ on
-    /// the sunlit side, and the check points measure the result).
+    /// ratio is undefined; it is continued by the least-squares plane
+    /// through the cell's sunlit support points ([`extend_plane`]; their
+    /// values there only matter multiplied by a small ℓ on the sunlit side,
+    /// and the check points measure the result).
     Lit,
     /// [`Self::Lit`] with the ratio as luminance × chromaticity, as in [`Self::Log`].
     LitLog,
@@ -372,8 +373,8 @@ impl Components {
     /// nine support points: the channels (or chromaticity), and for the
     /// log forms the log-luminance, of the component ([`LeafKind::Linear`],
     /// [`LeafKind::Log`]) or of the component over ℓ ([`LeafKind::Lit`],
-    /// [`LeafKind::LitLog`]; at points with ℓ ≤ 0 the mean over the sunlit
-    /// points used). A log form falls back to the channels for a component
+    /// [`LeafKind::LitLog`]; at points with ℓ ≤ 0 continued by the
+    /// least-squares plane through the sunlit points used, [`extend_plane`]). A log form falls back to the channels for a component
     /// whose luminance is not positive where it is needed.
     fn support_values(&self, support: &Support, kind: LeafKind, j: usize) -> ([[f64; 3]; 9], Option<[f64; 9]>) {
         let k = self.k();
@@ -835,10 +836,11 @@ impl Half {
         out
     }
 
-    /// The better of the interpolants in the channels and (where the
-    /// components' luminances are positive) in log-luminance × chromaticity
-    /// on `support`: its kind and misses. The log form is only tried where
-    /// the channels miss. Better means the smaller largest miss; for a
+    /// The best of the interpolants on `support` in the channels, (where the
+    /// components' luminances are positive) in log-luminance × chromaticity,
+    /// and (where the model gives a sunlit length ℓ) the two lit forms
+    /// ([`LeafKind::Lit`], [`LeafKind::LitLog`]): its kind and misses. Each
+    /// further form is only tried where the ones before miss. Better means the smaller largest miss; for a
     /// quadratic trial along θ or Δφ (`trial` = Some(true / false)) first
     /// the form that meets the tolerance in that direction (a log form can
     /// miss less overall but break the quadratic it is tried for).
@@ -856,8 +858,9 @@ impl Half {
         let worst = |m: Misses| m.0.max(m.1).max(m.2);
         let rank = |m: Misses| -> (bool, f64) {
             match trial {
-                Some(true) => (m.0 > tol, worst(m)),
-                Some(false) => (m.1 > tol, worst(m)),
+                // An unmeasured (infinite) miss fails whatever the direction.
+                Some(true) => (m.0 > tol || !worst(m).is_finite(), worst(m)),
+                Some(false) => (m.1 > tol || !worst(m).is_finite(), worst(m)),
                 None => (false, worst(m)),
             }
         };
@@ -953,8 +956,10 @@ impl Half {
                 };
                 // Bilinear in the components first; where that misses and a
                 // component's luminance is positive at every corner, bilinear in
-                // its log-luminance and chromaticity (`LeafKind::Log`, checked at
-                // the same points); refinement follows whichever misses less.
+                // its log-luminance and chromaticity (`LeafKind::Log`), then the
+                // lit forms where the model gives ℓ (`LeafKind::Lit`, `LitLog`),
+                // all checked at the same points; refinement follows whichever
+                // misses least.
                 let (mode, m) = half.best_fit(&cache, &c, &support, probe.cos_mu, floor, tol, None);
                 if worst(m) > tol && split_along_theta(&c, m, tol, limits) && su % 4 == 0 {
                     try_theta.push((c, idx, support, mode, m));
@@ -1082,7 +1087,10 @@ impl Half {
             let miss_all = along_u.max(along_v).max(centre);
             if miss_all > tol {
                 stats.pixel_limited += 1;
-                stats.pixel_limited_error = stats.pixel_limited_error.max(miss_all);
+                // An unmeasured miss (never chosen over a measured one) is not a number to report.
+                if miss_all.is_finite() {
+                    stats.pixel_limited_error = stats.pixel_limited_error.max(miss_all);
+                }
             } else {
                 stats.interpolation = stats.interpolation.max(miss_all);
             }
