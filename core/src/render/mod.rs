@@ -1502,16 +1502,16 @@ fn render_channels<const C: usize>(scene: &Scene, report: &mut Report, progress:
         stats.max_rel += lap_rel;
         // Where the centre sample stands for the filtered pixel, the filter's
         // second-order term (σ²/2)·∇²v is added to it, from the 5-point
-        // Laplacian of the centre samples, in the layers whose smoothness the
-        // classification checked: the in-scatter (all lights and each light
-        // alike, so `inscatter` stays the sum of the per-light layers) and
-        // the view transmittance. What is left is O(σ⁴∇⁴v), while the error
+        // Laplacian of the centre samples, in the in-scatter layers (all
+        // lights and each light alike, so `inscatter` stays the sum of the
+        // per-light layers). What is left is O(σ⁴∇⁴v), while the error
         // estimate keeps the whole term's size. With σ²/2 ≤ ¼ px² the result
         // is a convex combination of the five samples (no clamp needed: it
-        // stays ≥ 0, and ≤ 1 for a transmittance); a wider filter keeps the
-        // centre sample, as do the frame's border pixels (the per-light layers
-        // have no samples outside it) and the layers not checked (`sun_t`,
-        // the per-light surface transmittance).
+        // stays ≥ 0); a wider filter keeps the centre sample, as do the
+        // frame's border pixels (the per-light layers have no samples outside
+        // it). The transmittance layers keep their centre samples: the
+        // per-light surface transmittance is the view transmittance where no
+        // surface is seen, and must stay equal to it there.
         let smooth: Vec<usize> = if half_var <= 0.25 {
             classified
                 .iter()
@@ -1525,7 +1525,6 @@ fn render_channels<const C: usize>(scene: &Scene, report: &mut Report, progress:
         let with_filter_term =
             |img: &[[f32; 3]]| -> Vec<[f32; 3]> { smooth.iter().map(|&i| second_order_filter_term(img, w, i, half_var)).collect() };
         let smooth_inscatter = with_filter_term(&inscatter);
-        let smooth_transmittance = with_filter_term(&transmittance);
         let smooth_lights: Vec<Vec<[f32; 3]>> = light_inscatter.iter().map(|img| with_filter_term(img)).collect();
         let job = filter::AdaptiveFilterJob {
             filter,
@@ -1566,7 +1565,6 @@ fn render_channels<const C: usize>(scene: &Scene, report: &mut Report, progress:
         }
         for (k, &i) in smooth.iter().enumerate() {
             inscatter[i] = smooth_inscatter[k];
-            transmittance[i] = smooth_transmittance[k];
             for (img, v) in light_inscatter.iter_mut().zip(&smooth_lights) {
                 img[i] = v[k];
             }
