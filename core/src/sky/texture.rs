@@ -71,10 +71,10 @@
 //! exact wherever ℓ ≤ 0, so check points there prove nothing: a group of
 //! check points (along θ, along Δφ, centre) without a sunlit one counts as
 //! an unbounded miss. At 2048 × 1024, tolerance 1e-3, this took the sky
-//! stage at −6° from 369 to 303 ms and at −4° from 367 to 333 ms (at −4°:
-//! 13 341 evaluations + 2 180 direct pixels instead of 20 470 + 6 434;
-//! 1 295 grid points skipped in the shadow); at −2° it is unchanged
-//! (313 vs 317 ms): there the rays near the anti-solar point run almost
+//! stage at −6° from 369 to 215 ms, at −4° from 367 to ≈ 263 ms (13 341
+//! evaluations + 2 180 direct pixels instead of 20 470 + 6 434; 1 295 grid
+//! points skipped in the shadow) and at −2° from 313 to 262 ms — still far
+//! above 100 ms. At −2° the rays near the anti-solar point run almost
 //! parallel to the shadow's edge, ℓ jumps by thousands of km per degree
 //! and S/ℓ varies by orders of magnitude within a pixel.
 //!
@@ -376,7 +376,7 @@ impl Components {
     /// [`LeafKind::LitLog`]; at points with ℓ ≤ 0 continued by the
     /// least-squares plane through the sunlit points used, [`extend_plane`]). A log form falls back to the channels for a component
     /// whose luminance is not positive where it is needed.
-    fn support_values(&self, support: &Support, kind: LeafKind, j: usize) -> ([[f64; 3]; 9], Option<[f64; 9]>) {
+    fn support_values(&self, support: &Support, kind: LeafKind, j: usize) -> SupportValues {
         let k = self.k();
         let at = |p: u32| p as usize * k + j;
         let lit = matches!(kind, LeafKind::Lit | LeafKind::LitLog);
@@ -424,9 +424,19 @@ impl Components {
         }
         (vals, None)
     }
-    /// Σ_k w_k·S_k interpolated in the form `kind` ([`Self::support_values`])
-    /// at (s, t), with ℓ = `lit` there for the lit forms.
-    fn interpolate_form(&self, support: &Support, kind: LeafKind, w: &[f64], s: f64, t: f64, lit: f64) -> [f64; 3] {
+    /// Σ_k w_k·S_k interpolated in the form `kind` at (s, t) from `values`
+    /// (per component, [`Self::support_values`]), with ℓ = `lit` there for the lit forms.
+    #[allow(clippy::too_many_arguments)]
+    fn interpolate_form(
+        &self,
+        support: &Support,
+        kind: LeafKind,
+        values: &[SupportValues],
+        w: &[f64],
+        s: f64,
+        t: f64,
+        lit: f64,
+    ) -> [f64; 3] {
         let scale = match kind {
             LeafKind::Lit | LeafKind::LitLog => lit.max(0.0),
             _ => 1.0,
@@ -435,10 +445,9 @@ impl Components {
         if scale == 0.0 {
             return out;
         }
-        for (j, wj) in w.iter().take(self.k()).enumerate() {
-            let (vals, ln_y) = self.support_values(support, kind, j);
+        for (wj, (vals, ln_y)) in w.iter().zip(values) {
             let y = ln_y.map_or(1.0, |l| cell_interpolant(&l.map(|x| [x; 3]), support, s, t)[0].exp());
-            let v = cell_interpolant(&vals, support, s, t);
+            let v = cell_interpolant(vals, support, s, t);
             for c in 0..3 {
                 out[c] += wj * scale * y * v[c];
             }
@@ -555,19 +564,16 @@ const SLOT_POSITIONS: [(f64, f64); 9] = [
 /// ratio (e.g. its logarithm falling towards the shadow) is continued
 /// exactly instead of flattened.
 fn extend_plane(fit: &[bool; 9], own: &[bool; 9], v: &mut [f64; 9]) {
-    let pts: Vec<(f64, f64, f64)> = (0..9)
-        .filter(|&i| fit[i])
-        .map(|i| (SLOT_POSITIONS[i].0, SLOT_POSITIONS[i].1, v[i]))
-        .collect();
-    if pts.is_empty() {
+    // The fitted slots (no allocation: this runs per component and cell).
+    let pts = || (0..9).filter(|&i| fit[i]).map(|i| (SLOT_POSITIONS[i].0, SLOT_POSITIONS[i].1, v[i]));
+    let count = pts().count();
+    if count == 0 {
         return;
     }
-    let n = pts.len() as f64;
-    let (ms, mt, mv) = pts
-        .iter()
-        .fold((0.0, 0.0, 0.0), |a, p| (a.0 + p.0 / n, a.1 + p.1 / n, a.2 + p.2 / n));
+    let n = count as f64;
+    let (ms, mt, mv) = pts().fold((0.0, 0.0, 0.0), |a, p| (a.0 + p.0 / n, a.1 + p.1 / n, a.2 + p.2 / n));
     let (mut sss, mut stt, mut sst, mut ssv, mut stv) = (0.0, 0.0, 0.0, 0.0, 0.0);
-    for &(s, t, x) in &pts {
+    for (s, t, x) in pts() {
         let (ds, dt, dx) = (s - ms, t - mt, x - mv);
         sss += ds * ds;
         stt += dt * dt;
@@ -616,6 +622,11 @@ struct Stats {
     /// Grid points whose view ray is wholly in the earth's shadow: zero, not evaluated.
     in_shadow: usize,
 }
+
+/// What a leaf interpolates for one component at its nine support slots: the
+/// channels (or chromaticity), and the log-luminance for the log forms
+/// ([`Components::support_values`]).
+type SupportValues = ([[f64; 3]; 9], Option<[f64; 9]>);
 
 /// A sky evaluation at one grid point: phase-free component RGB values and the error estimate.
 type PointEval = (Vec<(Option<PhaseFunction>, [f64; 3])>, f64);
@@ -762,6 +773,12 @@ impl Half {
         kind: LeafKind,
     ) -> Misses {
         let lit_form = matches!(kind, LeafKind::Lit | LeafKind::LitLog);
+        // The form's values at the support, once per cell (not per check point).
+        let values: Vec<SupportValues> = if kind == LeafKind::Linear {
+            Vec::new()
+        } else {
+            (0..self.comps.k()).map(|j| self.comps.support_values(support, kind, j)).collect()
+        };
         let miss = |pts: &[(u32, u32, f64, f64)]| -> f64 {
             // A lit form is exact where ℓ ≤ 0, so there its check points
             // say nothing: a group of them with no sunlit point has not
@@ -783,7 +800,7 @@ impl Half {
                     self.comps.interpolate(support, &w, ss, tt)
                 } else {
                     self.comps
-                        .interpolate_form(support, kind, &w, ss, tt, self.comps.lit[point as usize])
+                        .interpolate_form(support, kind, &values, &w, ss, tt, self.comps.lit[point as usize])
                 };
                 // Relative to the luminance at the point itself.
                 let scale = luminance(&truth).abs().max(floor);
