@@ -2268,7 +2268,7 @@ mod tests {
     #[test]
     fn lit_length_matches_a_direct_scan_and_bounds_the_dark_sky() {
         // ℓ = t_end − (where the ray leaves the shadow) against bisection on
-        // the direct shadow test, for observers at 0 and 20 km with the sun
+        // the direct shadow test, for observers at 0, 20 and 80 km with the sun
         // below their horizon; where ℓ ≤ 0 the sky must be exactly zero, and
         // positive where ℓ is clearly positive.
         let mut rng = 0x2545_f491_4f6c_dd1d_u64;
@@ -2278,8 +2278,11 @@ mod tests {
             rng ^= rng << 17;
             (rng >> 11) as f64 / (1u64 << 53) as f64
         };
-        let (mut dark, mut lit) = (0, 0);
-        for (e, altitude) in [(-4.0, 0.0), (-2.0, 0.0), (-6.0, 0.0), (-8.0, 20_000.0)] {
+        let (mut dark, mut lit, mut from_above, mut dark_from_above, mut lit_from_above) = (0, 0, 0, 0, 0);
+        // The last observer is above the atmosphere's top (60 km): its view
+        // rays enter the atmosphere at t_in > 0, between the limb of the top
+        // (≈ 4.5° below its horizontal) and the earth's limb (≈ 9.1°).
+        for (e, altitude) in [(-4.0, 0.0), (-2.0, 0.0), (-6.0, 0.0), (-8.0, 20_000.0), (-10.0, 80_000.0)] {
             let p = AtmosphereParams {
                 altitude_m: altitude,
                 ..params(e)
@@ -2288,12 +2291,23 @@ mod tests {
             let o = DVec3::new(0.0, 0.0, RE + altitude);
             assert!(blocked(o, s), "sun {e}°: the observer must be in the shadow");
             for _ in 0..150 {
-                // Mostly low views towards the anti-solar side, where the shadow's edge is.
-                let elev = -2.0 + 14.0 * uniform() * uniform();
-                let v = dir(elev, s.y.atan2(s.x) + PI * (0.4 + 0.6 * uniform()));
+                // Mostly low views towards the anti-solar side, where the
+                // shadow's edge is; from above the top, any azimuth, below the limb.
+                let elev = if altitude > ATMOSPHERE_TOP_M {
+                    -10.0 + 6.0 * uniform()
+                } else {
+                    -2.0 + 14.0 * uniform() * uniform()
+                };
+                let from_sun = if altitude > ATMOSPHERE_TOP_M {
+                    PI * uniform()
+                } else {
+                    PI * (0.4 + 0.6 * uniform())
+                };
+                let v = dir(elev, s.y.atan2(s.x) + from_sun);
                 let ours = p.lit_length_m(v).expect("observer in the shadow");
                 assert!(ours.is_finite());
                 let Some((t_in, t_end, _)) = ref_segment(o, v) else { continue };
+                from_above += usize::from(t_in > 0.0);
                 // Direct: the exit from the shadow by a scan and bisection.
                 let n = 4000;
                 let mut exit = f64::INFINITY;
@@ -2325,18 +2339,24 @@ mod tests {
                         "sun {e}°, elev {elev:.3}°: ℓ = {ours} m but the sky is not dark"
                     );
                     dark += 1;
+                    dark_from_above += usize::from(t_in > 0.0);
                 } else if ours > 1.0 {
                     assert!(
                         sky.iter().any(|x| *x > 0.0),
                         "sun {e}°, elev {elev:.3}°: ℓ = {ours} m but the sky is dark"
                     );
                     lit += 1;
+                    lit_from_above += usize::from(t_in > 0.0);
                 }
             }
             // A lit observer has no lit length.
             assert_eq!(params(2.0).lit_length_m(dir(5.0, 1.0)), None);
         }
         assert!(dark >= 20 && lit >= 20, "only {dark} dark and {lit} lit views");
+        assert!(
+            from_above >= 50 && dark_from_above >= 10 && lit_from_above >= 10,
+            "from above: {from_above} views, {dark_from_above} dark, {lit_from_above} lit"
+        );
     }
 
     #[test]
