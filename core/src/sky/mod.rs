@@ -56,6 +56,16 @@ pub struct SkyReport {
     /// Pixels of those cells, each evaluated directly at its centre (sky model
     /// evaluations beyond `evaluations`).
     pub direct_pixels: usize,
+    /// Pieces of rows of pixels through such cells fitted along the row
+    /// (quadratic in the azimuth, checked at two points against the model).
+    pub row_fits: usize,
+    /// Row fits that missed the tolerance at their check points (halved, or
+    /// their pixels evaluated directly).
+    pub row_fits_missed: usize,
+    /// Pixels interpolated by the row fits.
+    pub row_fitted_pixels: usize,
+    /// Sky model evaluations spent on the row fits (beyond `evaluations`).
+    pub row_fit_evaluations: usize,
     /// Grid points whose view ray lies wholly in the earth's shadow: exactly
     /// zero in single scattering, so no integral was computed there.
     pub shadowed_points: usize,
@@ -137,11 +147,20 @@ pub fn render_world_with(
                     "their view rays lie wholly in the earth's shadow (found in closed form), where single scattering is exactly zero",
                 );
             }
+            if tex.row_fitted_pixels > 0 {
+                plan.computed(
+                    "pixels fitted along their row",
+                    format!(
+                        "{} pixels in grid cells that reached the pixel size still missing the tolerance: along each row (one view zenith angle) quadratic in the azimuth on {} pieces, each checked against the model at two points ({} sky evaluations; {} pieces missed and were halved or evaluated per pixel)",
+                        tex.row_fitted_pixels, tex.row_fits, tex.row_fit_evaluations, tex.row_fits_missed
+                    ),
+                );
+            }
             if tex.direct_pixels > 0 {
                 plan.computed(
                     "pixels evaluated directly",
                     format!(
-                        "{} pixels in {} grid cells that reached the pixel size still missing the tolerance (a step in the sky) are evaluated at their centres",
+                        "{} pixels in {} grid cells that reached the pixel size still missing the tolerance (a step in the sky), where no fit along the row met it, are evaluated at their centres",
                         tex.direct_pixels, tex.pixel_limited_cells
                     ),
                 );
@@ -195,6 +214,10 @@ pub fn render_world_with(
         pixel_limited_cells: tex.pixel_limited_cells,
         pixel_limited_error: tex.pixel_limited_error,
         direct_pixels: tex.direct_pixels,
+        row_fits: tex.row_fits,
+        row_fits_missed: tex.row_fits_missed,
+        row_fitted_pixels: tex.row_fitted_pixels,
+        row_fit_evaluations: tex.row_fit_evaluations,
         shadowed_points: tex.shadowed_points,
         colour: tex.colour.clone(),
         integrator: options.integrator,

@@ -78,6 +78,21 @@
 //! parallel to the shadow's edge, ℓ jumps by thousands of km per degree
 //! and S/ℓ varies by orders of magnitude within a pixel.
 //!
+//! **Row fits.** A cell that reaches half a pixel in θ still missing the
+//! tolerance (at −2°: rows 0–3° above the horizon, 130–180° from the sun,
+//! where the sky reddens within a pixel as the view rays leave the earth's
+//! shadow) is not interpolated. Each row of pixels through it has one θ,
+//! though, and along the row the sky is often smooth in Δφ: a run of at
+//! least [`ROW_FIT_MIN_PIXELS`] pixels is fitted by quadratics through model
+//! values on the row, each checked at two more points as the grid checks its
+//! cells and halved where it misses ([`fit_row`]); only pixels no fit covers
+//! are evaluated directly. At 2048 × 1024 this took the model calls for
+//! those pixels at −2° from 3 980 (one per pixel) to 2 664 + 44 direct, and
+//! the sky stage from 244 to 217 ms (−3°: 282 → 254 ms; −4° and −6°, with
+//! fewer such pixels, within noise). The every-pixel check against the model
+//! is unchanged (`every_pixel_at_2048_against_direct`, and `…_twilight` for
+//! −2, −3, −5, −6°: worst luminance 7.4–8.1e-4).
+//!
 //! **Error split.** The grid refines to [`GRID_TOLERANCE_FRACTION`] (0.8) of
 //! the tolerance left after the colour path's measured error (0 for the
 //! spectral path), because its check points estimate rather than bound the
@@ -224,6 +239,16 @@ pub struct WorldTexture {
     /// Pixels in pixel-limited cells, evaluated directly at their centre
     /// instead of interpolated across the step.
     pub direct_pixels: usize,
+    /// Pieces of rows through pixel-limited cells fitted along Δφ from model
+    /// evaluations on the row ([`fit_row`]).
+    pub row_fits: usize,
+    /// Row fits that missed the tolerance at their check points (the piece
+    /// was then halved, or its pixels evaluated directly: `direct_pixels`).
+    pub row_fits_missed: usize,
+    /// Pixels interpolated by the row fits.
+    pub row_fitted_pixels: usize,
+    /// Sky model evaluations spent on the row fits (not in `evaluations`).
+    pub row_fit_evaluations: usize,
     /// Grid points whose view ray lies wholly in the earth's shadow
     /// ([`SkyModel::lit_length`] ≤ 0): exactly zero, no integral (not in `evaluations`).
     pub shadowed_points: usize,
@@ -689,6 +714,9 @@ impl Half {
     }
     fn dphi(v: u32) -> f64 {
         PI * f64::from(v) / f64::from(TICKS)
+    }
+    fn dphi_ticks(v: f64) -> f64 {
+        PI * v / f64::from(TICKS)
     }
 
     /// Evaluates the sky at the points `need` (ticks) not yet in `cache`, in parallel.
@@ -1330,6 +1358,129 @@ fn sky_rgb(parts: Vec<(Option<PhaseFunction>, Spectrum)>, e: &Spectrum) -> Point
     (parts.into_iter().map(|(p, l)| (p, spectrum::spectrum_to_rec709(&l))).collect(), err)
 }
 
+/// The luminance below which errors are measured against this fraction of
+/// the brightest sky seen instead (relative errors of a nearly black sky mean nothing).
+const LUMINANCE_FLOOR_FRACTION: f64 = 1e-4;
+
+/// Runs shorter than this (pixels of one row in one pixel-limited cell) are
+/// evaluated directly: a row fit costs five evaluations, each halving two more.
+const ROW_FIT_MIN_PIXELS: usize = 8;
+
+/// The phase-free components along one row of pixels (fixed θ) across a
+/// cell, quadratic in the cell's Δφ coordinate t ∈ [0, 1]: `a + t·(d + t·e)`
+/// per component and channel.
+struct RowFit {
+    phases: Vec<Option<PhaseFunction>>,
+    a: Vec<[f64; 3]>,
+    d: Vec<[f64; 3]>,
+    e: Vec<[f64; 3]>,
+}
+
+impl RowFit {
+    /// Linear Rec.709 radiance at `t` for the phase cosine `mu`.
+    fn at(&self, t: f64, mu: f64) -> [f64; 3] {
+        let mut out = [0.0; 3];
+        for (c, p) in self.phases.iter().enumerate() {
+            let w = p.map_or(1.0, |p| p.eval(mu));
+            for ch in 0..3 {
+                out[ch] += w * (self.a[c][ch] + t * (self.d[c][ch] + t * self.e[c][ch]));
+            }
+        }
+        out
+    }
+}
+
+/// A model evaluation on a row: the phase-free components and the phase cosine μ.
+type RowPoint = (Vec<(Option<PhaseFunction>, [f64; 3])>, f64);
+
+/// What [`fit_row`] found: the pieces of the cell's Δφ range `[a, b]` (in the
+/// cell's coordinate t ∈ [0, 1]) with their fit, `None` where the pixels are
+/// to be evaluated directly; the model evaluations spent; the fits that missed;
+/// and the largest check-point miss of the fits kept.
+struct RowFits {
+    pieces: Vec<(f64, f64, Option<RowFit>)>,
+    evaluations: usize,
+    missed: usize,
+    miss: f64,
+}
+
+/// A row of pixels through a pixel-limited cell. Such a cell reached half
+/// a pixel in θ still missing the tolerance there (at twilight: where the
+/// sky reddens within a pixel as the view rays leave the earth's shadow),
+/// yet a row has a single θ, and along it the sky is often smooth in Δφ.
+/// `at(t)` evaluates the model on the row at the cell's Δφ coordinate t.
+/// On `[0, 1]`, then on halves where that misses, the quadratic through the
+/// ends and the middle is checked at the quarter points against the model,
+/// in every Rec.709 channel relative to the luminance there (not less than
+/// `floor`) — the grid's own check — and kept where both meet `tol`. A piece
+/// holding fewer than [`ROW_FIT_MIN_PIXELS`]/2 of the row's pixels (`ts`,
+/// their t, sorted) is not tried: its pixels are evaluated directly.
+fn fit_row(at: &dyn Fn(f64) -> RowPoint, ts: &[f64], tol: f64, floor: f64) -> RowFits {
+    let mut out = RowFits {
+        pieces: Vec::new(),
+        evaluations: 3,
+        missed: 0,
+        miss: 0.0,
+    };
+    let (p0, ph, p1) = (at(0.0), at(0.5), at(1.0));
+    fit_piece(at, ts, tol, floor, (0.0, 1.0), [p0, ph, p1], &mut out);
+    out
+}
+
+fn fit_piece(
+    at: &dyn Fn(f64) -> RowPoint,
+    ts: &[f64],
+    tol: f64,
+    floor: f64,
+    (a, b): (f64, f64),
+    [pa, pm, pb]: [RowPoint; 3],
+    out: &mut RowFits,
+) {
+    let pixels = ts.iter().filter(|t| **t >= a && (**t < b || b == 1.0)).count();
+    if pixels < ROW_FIT_MIN_PIXELS / 2 {
+        out.pieces.push((a, b, None));
+        return;
+    }
+    let k = pa.0.len();
+    let fit = (pm.0.len() == k && pb.0.len() == k).then(|| {
+        let mut fit = RowFit {
+            phases: pa.0.iter().map(|c| c.0).collect(),
+            a: vec![[0.0; 3]; k],
+            d: vec![[0.0; 3]; k],
+            e: vec![[0.0; 3]; k],
+        };
+        for c in 0..k {
+            for ch in 0..3 {
+                let (f0, fh, f1) = (pa.0[c].1[ch], pm.0[c].1[ch], pb.0[c].1[ch]);
+                let e = 2.0 * (f1 - 2.0 * fh + f0);
+                fit.a[c][ch] = f0;
+                fit.e[c][ch] = e;
+                fit.d[c][ch] = f1 - f0 - e;
+            }
+        }
+        fit
+    });
+    let (q1, q3) = (at(a + 0.25 * (b - a)), at(a + 0.75 * (b - a)));
+    out.evaluations += 2;
+    let miss = fit.as_ref().map_or(f64::INFINITY, |fit| {
+        [(0.25, &q1), (0.75, &q3)].iter().fold(0.0_f64, |m, (t, (parts, mu))| {
+            let truth = total_rgb(parts, *mu);
+            let ours = fit.at(*t, *mu);
+            let y = luminance(&truth).abs().max(floor);
+            (0..3).fold(m, |m, ch| m.max((ours[ch] - truth[ch]).abs() / y))
+        })
+    });
+    if miss <= tol {
+        out.miss = out.miss.max(miss);
+        out.pieces.push((a, b, fit));
+        return;
+    }
+    out.missed += 1;
+    let m = 0.5 * (a + b);
+    fit_piece(at, ts, tol, floor, (a, m), [pa, q1, pm.clone()], out);
+    fit_piece(at, ts, tol, floor, (m, b), [pm, q3, pb], out);
+}
+
 fn total_rgb(parts: &[(Option<PhaseFunction>, [f64; 3])], mu: f64) -> [f64; 3] {
     let mut out = [0.0; 3];
     for (p, v) in parts {
@@ -1411,7 +1562,7 @@ fn decide_colour(
                     return f64::INFINITY;
                 };
                 let b = total_rgb(&sky_rgb(p, &e).0, mu(d));
-                let scale = luminance(f).abs().max(1e-4 * brightest).max(1e-300);
+                let scale = luminance(f).abs().max(LUMINANCE_FLOOR_FRACTION * brightest).max(1e-300);
                 (0..3).fold(0.0f64, |m, c| m.max((b[c] - f[c]).abs() / scale))
             })
             .reduce(|| 0.0, f64::max);
@@ -1500,7 +1651,7 @@ pub fn build_world_texture_with(model: &dyn SkyModel, settings: &TextureSettings
     let limits = |theta_span: f64| Limits {
         min_su: ((f64::from(TICKS) * 0.5 * (PI / height as f64) / theta_span) as u32).max(1),
         min_sv: ((f64::from(TICKS) * 0.5 * (2.0 * PI / width as f64) / PI) as u32).max(1),
-        floor_fraction: 1e-4,
+        floor_fraction: LUMINANCE_FLOOR_FRACTION,
     };
     let lit = |theta: f64, dphi: f64| model.lit_length(direction(theta, dphi));
     let probe = Probe {
@@ -1531,6 +1682,15 @@ pub fn build_world_texture_with(model: &dyn SkyModel, settings: &TextureSettings
     let cos_dphi: Vec<f64> = columns.iter().map(|c| c.1).collect();
     let mut rgb: Vec<[f32; 3]> = vec![[0.0; 3]; width * height];
     let direct = std::sync::atomic::AtomicUsize::new(0);
+    let (row_fits, row_fits_missed, row_fitted, row_fit_evaluations) = (
+        std::sync::atomic::AtomicUsize::new(0),
+        std::sync::atomic::AtomicUsize::new(0),
+        std::sync::atomic::AtomicUsize::new(0),
+        std::sync::atomic::AtomicUsize::new(0),
+    );
+    // Largest check-point miss of the row fits, as f64 bits (non-negative floats order as their bits).
+    let row_miss = std::sync::atomic::AtomicU64::new(0);
+    let row_floor = (LUMINANCE_FLOOR_FRACTION * stats.brightest).max(1e-300);
     rgb.par_chunks_mut(width).enumerate().for_each_init(
         || (vec![0.0; width], vec![0.0; MAX_COMPONENTS * width]),
         |(mu, weights), (j, row)| {
@@ -1554,10 +1714,49 @@ pub fn build_world_texture_with(model: &dyn SkyModel, settings: &TextureSettings
                 let l = half.find(fu, columns[i].2);
                 if l.kind == LeafKind::PixelLimited {
                     // A step in the sky (the earth's shadow edge): interpolating across it
-                    // would miss the tolerance, so the pixel centre is evaluated directly.
-                    direct.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-                    row[i] = total_rgb(&eval(theta, columns[i].0).0, mu[i]).map(|v| v as f32);
-                    i += 1;
+                    // would miss the tolerance. Along this row (one θ) the sky may still be
+                    // smooth in Δφ: a long enough run is fitted from five points on the row
+                    // ([`fit_row`]); where that misses, each pixel centre is evaluated directly.
+                    let mut n = 1;
+                    while i + n < width && l.contains(fu, columns[i + n].2) {
+                        n += 1;
+                    }
+                    let mut fits = None;
+                    if n >= ROW_FIT_MIN_PIXELS {
+                        let at = |t: f64| {
+                            let dphi = Half::dphi_ticks(l.v0 + t * l.sv);
+                            (eval(theta, dphi).0, (mu_a * dphi.cos() + mu_b).clamp(-1.0, 1.0))
+                        };
+                        let mut ts: Vec<f64> = (i..i + n).map(|px| ((columns[px].2 - l.v0) / l.sv).clamp(0.0, 1.0)).collect();
+                        ts.sort_by(f64::total_cmp);
+                        fits = Some(fit_row(&at, &ts, grid_tol, row_floor));
+                    }
+                    let mut direct_here = 0;
+                    for px in i..i + n {
+                        let t = ((columns[px].2 - l.v0) / l.sv).clamp(0.0, 1.0);
+                        let piece = fits
+                            .as_ref()
+                            .and_then(|f| f.pieces.iter().find(|(a, b, _)| t >= *a && (t < *b || *b == 1.0)))
+                            .and_then(|(a, b, fit)| fit.as_ref().map(|fit| (fit, (t - a) / (b - a))));
+                        row[px] = match piece {
+                            Some((fit, tt)) => fit.at(tt, mu[px]),
+                            None => {
+                                direct_here += 1;
+                                total_rgb(&eval(theta, columns[px].0).0, mu[px])
+                            }
+                        }
+                        .map(|v| v as f32);
+                    }
+                    direct.fetch_add(direct_here, std::sync::atomic::Ordering::Relaxed);
+                    if let Some(f) = &fits {
+                        use std::sync::atomic::Ordering::Relaxed;
+                        row_fits.fetch_add(f.pieces.iter().filter(|p| p.2.is_some()).count(), Relaxed);
+                        row_fits_missed.fetch_add(f.missed, Relaxed);
+                        row_fitted.fetch_add(n - direct_here, Relaxed);
+                        row_fit_evaluations.fetch_add(f.evaluations, Relaxed);
+                        row_miss.fetch_max(f.miss.to_bits(), Relaxed);
+                    }
+                    i += n;
                     continue;
                 }
                 let run = half.row_run(&l, fu);
@@ -1597,7 +1796,7 @@ pub fn build_world_texture_with(model: &dyn SkyModel, settings: &TextureSettings
         rgb,
         evaluations: stats.evaluations,
         cells: upper.cells() + lower.cells(),
-        interpolation_error: stats.interpolation,
+        interpolation_error: stats.interpolation.max(f64::from_bits(row_miss.into_inner())),
         model_error: stats.model_error,
         pixel_limited_cells: stats.pixel_limited,
         pixel_limited_error: stats.pixel_limited_error,
@@ -1607,6 +1806,10 @@ pub fn build_world_texture_with(model: &dyn SkyModel, settings: &TextureSettings
         integrator: options.integrator,
         first_estimates: 0,
         direct_pixels: direct.into_inner(),
+        row_fits: row_fits.into_inner(),
+        row_fits_missed: row_fits_missed.into_inner(),
+        row_fitted_pixels: row_fitted.into_inner(),
+        row_fit_evaluations: row_fit_evaluations.into_inner(),
         shadowed_points: stats.in_shadow,
     }
 }
@@ -1672,6 +1875,10 @@ fn build_coherence(model: &dyn SkyModel, settings: &TextureSettings, threshold: 
         integrator: Integrator::KlassenCoherence { threshold },
         first_estimates: counts.iter().map(|c| c.1).sum(),
         direct_pixels: 0,
+        row_fits: 0,
+        row_fits_missed: 0,
+        row_fitted_pixels: 0,
+        row_fit_evaluations: 0,
         shadowed_points: 0,
     }
 }
@@ -1839,13 +2046,15 @@ mod tests {
                 .collect();
             let (worst_y, worst_uv, _) = worst_pixel_errors(&t.rgb, &exact);
             eprintln!(
-                "twilight toy, ℓ {}: {} evaluations, {} shadowed points, {} cells, {} at the pixel size ({} direct pixels); worst luminance {worst_y:.2e}, Δu′v′ {worst_uv:.2e}",
+                "twilight toy, ℓ {}: {} evaluations, {} shadowed points, {} cells, {} at the pixel size ({} direct pixels, {} fitted along their rows with {} evaluations); worst luminance {worst_y:.2e}, Δu′v′ {worst_uv:.2e}",
                 if hint { "known" } else { "unknown" },
                 t.evaluations,
                 t.shadowed_points,
                 t.cells,
                 t.pixel_limited_cells,
-                t.direct_pixels
+                t.direct_pixels,
+                t.row_fitted_pixels,
+                t.row_fit_evaluations
             );
             (t, worst_y, worst_uv)
         };
@@ -1855,11 +2064,12 @@ mod tests {
             assert!(y <= 1e-3 && uv <= 1e-3, "luminance {y:.2e}, Δu′v′ {uv:.2e}");
         }
         // Without ℓ the kink is refined to the pixel size and its pixels are
-        // evaluated directly; with it the cells across the kink interpolate
-        // (measured: 739 → 116 direct pixels, 7 261 → 2 185 model calls).
+        // evaluated directly or fitted along their rows; with it the cells
+        // across the kink interpolate (measured: 739 → 131 pixels in cells at
+        // the pixel size, 7 114 → 2 208 model calls with the row fits).
         assert_eq!(plain.shadowed_points, 0);
         assert!(lit.shadowed_points > 0);
-        let calls = |t: &WorldTexture| t.evaluations + t.direct_pixels;
+        let calls = |t: &WorldTexture| t.evaluations + t.direct_pixels + t.row_fit_evaluations;
         assert!(
             lit.direct_pixels * 4 <= plain.direct_pixels && calls(&lit) * 3 <= calls(&plain),
             "direct pixels {} vs {}, model calls {} vs {}",
@@ -1868,6 +2078,80 @@ mod tests {
             calls(&lit),
             calls(&plain)
         );
+    }
+
+    /// A sky with a step in θ far narrower than a pixel (a band 20° above the
+    /// horizon brightens five-fold within 0.01°) and smooth in Δφ.
+    struct Ledge;
+    impl SkyModel for Ledge {
+        fn sky_radiance(&self, d: DVec3, _tol: f64) -> (Spectrum, Spectrum) {
+            let elevation = d.z.clamp(-1.0, 1.0).asin().to_degrees();
+            let step = 1.0 + 2.0 * (1.0 + ((elevation - 20.0) / 0.01).tanh());
+            let azimuth = d.y.atan2(d.x);
+            let scale = step * (1.0 + 0.3 * azimuth.cos() + 0.1 * (2.0 * azimuth).sin().abs()) * 1e-3;
+            let wl = spectrum::wavelengths_nm();
+            (
+                std::array::from_fn(|i| scale * (550.0 / wl[i]).powf(2.0 + elevation / 90.0)),
+                [0.0; SPECTRAL_SAMPLES],
+            )
+        }
+        fn sun_direction(&self) -> DVec3 {
+            DVec3::new(0.0, 0.0, 1.0)
+        }
+        fn sun_irradiance(&self) -> Spectrum {
+            [0.0; SPECTRAL_SAMPLES]
+        }
+        fn sun_angular_diameter(&self) -> f64 {
+            0.545f64.to_radians()
+        }
+    }
+
+    #[test]
+    fn rows_through_a_step_are_fitted_along_the_row() {
+        // The grid stops at half a pixel across the step; the rows in those
+        // cells have one θ each and a smooth sky along them, so they are
+        // fitted (and checked) along Δφ instead of evaluated per pixel.
+        let settings = TextureSettings {
+            width: 512,
+            tolerance: 1e-3,
+            sun_disc: false,
+        };
+        let model = Ledge;
+        let t = build_world_texture(&model, &settings);
+        let (w, h) = (t.width, t.height);
+        let exact: Vec<[f64; 3]> = (0..w * h)
+            .map(|p| {
+                let d = equirect_direction((p % w) as f64 + 0.5, (p / w) as f64 + 0.5, w, h);
+                spectrum::spectrum_to_xyz(&model.sky_radiance(d, 0.0).0)
+            })
+            .collect();
+        let (worst_y, worst_uv, _) = worst_pixel_errors(&t.rgb, &exact);
+        eprintln!(
+            "ledge: {} evaluations, {} cells at the pixel size, {} row fits ({} missed) covering {} pixels with {} evaluations, {} direct pixels; worst luminance {worst_y:.2e}, Δu′v′ {worst_uv:.2e}",
+            t.evaluations,
+            t.pixel_limited_cells,
+            t.row_fits,
+            t.row_fits_missed,
+            t.row_fitted_pixels,
+            t.row_fit_evaluations,
+            t.direct_pixels
+        );
+        assert!(worst_y <= 1e-3 && worst_uv <= 1e-3, "luminance {worst_y:.2e}, Δu′v′ {worst_uv:.2e}");
+        assert!(t.pixel_limited_cells > 0, "the step must reach the pixel size");
+        // The rows across the step (one or two of the 256) are fitted, not evaluated per pixel.
+        assert!(
+            t.row_fitted_pixels >= w && t.direct_pixels * 10 <= t.row_fitted_pixels,
+            "{} fitted, {} direct",
+            t.row_fitted_pixels,
+            t.direct_pixels
+        );
+        assert!(
+            t.row_fit_evaluations * 4 <= t.row_fitted_pixels,
+            "{} evaluations for {} pixels",
+            t.row_fit_evaluations,
+            t.row_fitted_pixels
+        );
+        assert!(t.interpolation_error <= 0.8e-3);
     }
 
     #[test]
@@ -2366,6 +2650,24 @@ mod tests {
             eprintln!(
                 "2048 × 1024, sun {e:>4}°: {} ({} evals): worst luminance {worst_y:.2e}, Δu′v′ {worst_uv:.2e}",
                 t.colour.path, t.evaluations
+            );
+            assert!(worst_y <= 1e-3, "{e}°: luminance {worst_y:.2e}");
+            assert!(worst_uv <= 1e-3, "{e}°: Δu′v′ {worst_uv:.2e}");
+        }
+    }
+
+    /// The same check at the twilight elevations between the issue's −4°
+    /// and the −6° limit, where the cells at the pixel size (and their row
+    /// fits) are: run with `--ignored`.
+    #[test]
+    #[ignore = "minutes: every pixel of four 2048 × 1024 twilight textures against the direct model"]
+    fn every_pixel_at_2048_against_direct_twilight() {
+        for e in [-2.0, -3.0, -5.0, -6.0] {
+            let atm = atmosphere(e);
+            let (t, worst_y, worst_uv, _) = texture_against_direct(&atm, 2048, 1e-3);
+            eprintln!(
+                "2048 × 1024, sun {e:>4}°: {} evals, {} pixels fitted along rows ({} evals), {} direct: worst luminance {worst_y:.2e}, Δu′v′ {worst_uv:.2e}",
+                t.evaluations, t.row_fitted_pixels, t.row_fit_evaluations, t.direct_pixels
             );
             assert!(worst_y <= 1e-3, "{e}°: luminance {worst_y:.2e}");
             assert!(worst_uv <= 1e-3, "{e}°: Δu′v′ {worst_uv:.2e}");
