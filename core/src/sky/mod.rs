@@ -160,7 +160,7 @@ pub fn render_world_with(
                 plan.computed(
                     "pixels evaluated directly",
                     format!(
-                        "{} pixels in {} grid cells that reached the pixel size still missing the tolerance (a step in the sky), where no fit along the row met it, are evaluated at their centres",
+                        "{} pixels in {} grid cells that reached the pixel size still missing the tolerance (a step in the sky), where no fit along the row was tried (runs under 8 pixels) or met it, are evaluated at their centres",
                         tex.direct_pixels, tex.pixel_limited_cells
                     ),
                 );
