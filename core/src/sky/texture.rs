@@ -1414,7 +1414,7 @@ struct RowFits {
 /// in every Rec.709 channel relative to the luminance there (not less than
 /// `floor`) — the grid's own check — and kept where both meet `tol`. A piece
 /// holding fewer than [`ROW_FIT_MIN_PIXELS`]/2 of the row's pixels (`ts`,
-/// their t, sorted) is not tried: its pixels are evaluated directly.
+/// their t) is not tried: its pixels are evaluated directly.
 fn fit_row(at: &dyn Fn(f64) -> RowPoint, ts: &[f64], tol: f64, floor: f64) -> RowFits {
     let mut out = RowFits {
         pieces: Vec::new(),
@@ -1731,8 +1731,7 @@ pub fn build_world_texture_with(model: &dyn SkyModel, settings: &TextureSettings
                             let dphi = Half::dphi_ticks(l.v0 + t * l.sv);
                             (eval(theta, dphi).0, (mu_a * dphi.cos() + mu_b).clamp(-1.0, 1.0))
                         };
-                        let mut ts: Vec<f64> = (i..i + n).map(|px| ((columns[px].2 - l.v0) / l.sv).clamp(0.0, 1.0)).collect();
-                        ts.sort_by(f64::total_cmp);
+                        let ts: Vec<f64> = (i..i + n).map(|px| ((columns[px].2 - l.v0) / l.sv).clamp(0.0, 1.0)).collect();
                         fits = Some(fit_row(&at, &ts, grid_tol, row_floor));
                     }
                     let mut direct_here = 0;
@@ -2041,14 +2040,7 @@ mod tests {
         let run = |hint: bool| {
             let model = Twilight { hint };
             let t = build_world_texture(&model, &settings);
-            let (w, h) = (t.width, t.height);
-            let exact: Vec<[f64; 3]> = (0..w * h)
-                .map(|p| {
-                    let d = equirect_direction((p % w) as f64 + 0.5, (p / w) as f64 + 0.5, w, h);
-                    spectrum::spectrum_to_xyz(&model.sky_radiance(d, 0.0).0)
-                })
-                .collect();
-            let (worst_y, worst_uv, _) = worst_pixel_errors(&t.rgb, &exact);
+            let (worst_y, worst_uv, _) = worst_pixel_errors(&t.rgb, &exact_xyz(&model, t.width, t.height));
             eprintln!(
                 "twilight toy, ℓ {}: {} evaluations, {} shadowed points, {} cells, {} at the pixel size ({} direct pixels, {} fitted along their rows with {} evaluations); worst luminance {worst_y:.2e}, Δu′v′ {worst_uv:.2e}",
                 if hint { "known" } else { "unknown" },
@@ -2137,14 +2129,8 @@ mod tests {
         };
         let model = Ledge;
         let t = build_world_texture(&model, &settings);
-        let (w, h) = (t.width, t.height);
-        let exact: Vec<[f64; 3]> = (0..w * h)
-            .map(|p| {
-                let d = equirect_direction((p % w) as f64 + 0.5, (p / w) as f64 + 0.5, w, h);
-                spectrum::spectrum_to_xyz(&model.sky_radiance(d, 0.0).0)
-            })
-            .collect();
-        let (worst_y, worst_uv, _) = worst_pixel_errors(&t.rgb, &exact);
+        let w = t.width;
+        let (worst_y, worst_uv, _) = worst_pixel_errors(&t.rgb, &exact_xyz(&model, t.width, t.height));
         eprintln!(
             "ledge: {} evaluations, {} cells at the pixel size, {} row fits ({} missed) covering {} pixels with {} evaluations, {} direct pixels; worst luminance {worst_y:.2e}, Δu′v′ {worst_uv:.2e}",
             t.evaluations,
@@ -2636,6 +2622,16 @@ mod tests {
     /// Worst luminance error and Δu′v′ of a texture against per-pixel XYZ;
     /// pixels darker than 1e-4 of the brightest are judged in absolute terms
     /// against that floor (and counted, third value).
+    /// CIE XYZ of `model` at every pixel centre of a `w` × `h` texture, evaluated directly.
+    fn exact_xyz(model: &dyn SkyModel, w: usize, h: usize) -> Vec<[f64; 3]> {
+        (0..w * h)
+            .map(|p| {
+                let d = equirect_direction((p % w) as f64 + 0.5, (p / w) as f64 + 0.5, w, h);
+                spectrum::spectrum_to_xyz(&model.sky_radiance(d, 0.0).0)
+            })
+            .collect()
+    }
+
     fn worst_pixel_errors(rgb: &[[f32; 3]], exact: &[[f64; 3]]) -> (f64, f64, usize) {
         let ymax = exact.iter().fold(0.0f64, |m, c| m.max(c[1]));
         let (mut worst_y, mut worst_uv, mut dark) = (0.0f64, 0.0f64, 0usize);
