@@ -1725,18 +1725,18 @@ pub fn build_world_texture_with(model: &dyn SkyModel, settings: &TextureSettings
                     while i + n < width && l.contains(fu, columns[i + n].2) {
                         n += 1;
                     }
+                    // Each pixel's Δφ coordinate t across the cell.
+                    let ts: Vec<f64> = (i..i + n).map(|px| ((columns[px].2 - l.v0) / l.sv).clamp(0.0, 1.0)).collect();
                     let mut fits = None;
                     if n >= ROW_FIT_MIN_PIXELS {
                         let at = |t: f64| {
                             let dphi = Half::dphi_ticks(l.v0 + t * l.sv);
                             (eval(theta, dphi).0, (mu_a * dphi.cos() + mu_b).clamp(-1.0, 1.0))
                         };
-                        let ts: Vec<f64> = (i..i + n).map(|px| ((columns[px].2 - l.v0) / l.sv).clamp(0.0, 1.0)).collect();
                         fits = Some(fit_row(&at, &ts, grid_tol, row_floor));
                     }
                     let mut direct_here = 0;
-                    for px in i..i + n {
-                        let t = ((columns[px].2 - l.v0) / l.sv).clamp(0.0, 1.0);
+                    for (px, &t) in (i..i + n).zip(&ts) {
                         let piece = fits
                             .as_ref()
                             .and_then(|f| f.pieces.iter().find(|(a, b, _)| t >= *a && (t < *b || *b == 1.0)))
