@@ -124,9 +124,9 @@ enum Command {
         /// reused while the first estimates differ by less than the tolerance).
         #[arg(long, value_enum, default_value_t = SkyIntegratorName::Adaptive)]
         integrator: SkyIntegratorName,
-        /// Colour path at the evaluated points: `auto` (default; reduced wavelength
-        /// set where its measured error allows), `spectral` (always 81 samples),
-        /// `bands17` (always 17 wavelengths, unchecked).
+        /// Colour path at the evaluated points: `auto` (default; the model's own
+        /// Rec.709 path where it has one: the atmosphere's 81-wavelength colour
+        /// sums tabulated over its columns), `spectral` (81 samples converted per point).
         #[arg(long, value_enum, default_value_t = SkyColourName::Auto)]
         colour_path: SkyColourName,
         /// Atmosphere only: add the optional, approximate multiple-scattering term
@@ -196,12 +196,10 @@ pub enum SkyIntegratorName {
 /// Colour path of the `sky` command.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
 pub enum SkyColourName {
-    /// Reduced wavelength set where its measured error allows, else spectral (default).
+    /// The model's own Rec.709 path where it has one, else spectral (default).
     Auto,
-    /// Always 81 spectral samples.
+    /// Always 81 spectral samples, converted per point.
     Spectral,
-    /// Always 17 wavelengths (unchecked).
-    Bands17,
 }
 
 /// Sky models the `sky` command offers.
@@ -362,7 +360,6 @@ fn execute(cmd: Command) -> Result<(), CliError> {
                     colour: match colour_path {
                         SkyColourName::Auto => tyndall_core::sky::texture::ColourPath::Auto,
                         SkyColourName::Spectral => tyndall_core::sky::texture::ColourPath::Spectral,
-                        SkyColourName::Bands17 => tyndall_core::sky::texture::ColourPath::Bands17,
                     },
                     integrator: match integrator {
                         SkyIntegratorName::Adaptive => tyndall_core::sky::texture::Integrator::Adaptive,

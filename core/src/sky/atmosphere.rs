@@ -6,9 +6,11 @@
 //! This goes beyond the seed: Ishiyama (seed `002`) solves *one* exponential
 //! layer over a *flat* earth in closed form (eqs 14, 21–23). Here each species
 //! has its own profile and the earth is a sphere, so the optical depths have no
-//! closed form. They are integrated by globally adaptive Gauss–Kronrod (7, 15)
-//! quadrature (the panel rule of [`crate::numeric::integrate_adaptive`]) with
-//! an error estimate, on pieces split wherever an integrand has a kink or a
+//! closed form. They are integrated by globally adaptive quadrature on the
+//! nested Gauss–Kronrod–Patterson panels G3 ⊂ K7 ⊂ P15
+//! ([`crate::numeric::NestedPanel`]: a panel starts as K7 with the estimate
+//! `|K7 − G3|`, is extended to P15 with `|P15 − K7|`, then split) with an
+//! error estimate, on pieces split wherever an integrand has a kink or a
 //! jump, so that every panel sees a smooth integrand.
 //!
 //! # Model and data
@@ -144,9 +146,9 @@
 //!   the sun ([`AtmosphereParams::sun_spectral_irradiance`], to 1e-11): the
 //!   densities are integrated adaptively on pieces split at the crossings of
 //!   the ozone kinks (10, 25, 40 km) and at the ray's lowest point; each piece
-//!   has an analytic integrand, where G7–K15 converges fast and its
-//!   `|K15 − G7|` estimate is conservative (a few hundred density evaluations
-//!   per ray at 1e-10).
+//!   has an analytic integrand, where the nested rules converge fast and
+//!   their estimates (the lower rule's error) are conservative (a few hundred
+//!   density evaluations per ray at 1e-10).
 //! * **Tables and closed forms** inside the sky integral
 //!   ([`crate::sky::optical_depth`]): Rayleigh and Mie columns from Chapman-function
 //!   tables (`C(P → top) = C∞(P) − C∞(top exit)`, the view column as the
@@ -182,11 +184,17 @@
 //! [`crate::sky::optical_depth`] (three or four look-ups and one or two
 //! logarithms per ozone piece instead of two adaptive integrals), and
 //! `exp(−τ)` at every wavelength ([`crate::sky::optical_depth::exp_neg`],
-//! which vectorises). The outer integral is split at the ends, the shadow's
-//! edges, the ozone-kink crossings of the view ray and of the sun rays, and
-//! the view ray's lowest point, then refined globally (always the panel with
-//! the largest weighted error) until every wavelength's summed
-//! `|K15 − G7|` is at most `rel_tol · max(|L(λ)|, 10⁻² max_λ |L|)`. The
+//! which vectorises) — or, for world textures, the colour of that light
+//! from a table over the columns ([`crate::sky::colour_table`]). The outer
+//! integral is split at the ends, the shadow's edges, the ozone-kink
+//! crossings of the view ray and of the sun rays, and the view ray's lowest
+//! point; each piece starts as one K7 panel (seven points: at twilight
+//! ≈ 55 points per ray instead of G7–K15's ≈ 110), then the panel with the
+//! largest weighted error is extended or split until every wavelength's
+//! summed estimate is at most `rel_tol · max(|L(λ)|, 10⁻² max_λ |L|)` — on
+//! `L = p_R·S_R + p_M·S_M`, the radiance itself, not on each part (the
+//! world texture's Rec.709 path: each channel within `rel_tol` of the
+//! luminance). The
 //! columns' charged errors (≈ 1e-11 relative for Rayleigh and Mie, 1e-12
 //! relative plus 1e-6 m for ozone) bound `δτ`; their effect `L · max δτ` is
 //! added to the reported error.
@@ -205,8 +213,8 @@
 //! aid, not physics with an error bar.
 
 use crate::medium::phase::PhaseFunction;
-use crate::numeric::integrate_adaptive;
-use crate::sky::bands::{Bands, Expander};
+use crate::numeric::NestedPanel;
+use crate::sky::colour_table::{ColourSums, ColourTable};
 use crate::sky::optical_depth::{
     ChapmanTables, Col2, Line, OzoneCumulative, chapman_tables, column_to_infinity, column_to_top, exp_neg, ozone_error, transmittances,
 };
@@ -474,7 +482,7 @@ impl Columns {
 pub struct ColumnResult {
     /// The columns, m.
     pub columns: Columns,
-    /// Estimated absolute error of each column, m (summed `|K15 − G7|` plus a
+    /// Estimated absolute error of each column, m (summed panel estimates plus a
     /// rounding floor of 64 ε·|C|; conservative).
     pub error: Columns,
     /// Distance from the start to where the ray enters the atmosphere, m (0
@@ -488,63 +496,52 @@ pub struct ColumnResult {
     pub evaluations: usize,
 }
 
-/// Globally adaptive G7–K15 of a vector-valued `f` over the pieces between
+/// Globally adaptive quadrature of a vector-valued `f` over the pieces
+/// between consecutive `breaks` (empty pieces skipped), on the nested
+/// G3 ⊂ K7 ⊂ P15 panels of [`NestedPanel`]: every piece starts as one K7
+/// panel; the panel with the largest error relative to its component's
+/// absolute tolerance (`tolerance(values so far)`, per component) is
+/// extended to P15 if it still can be, else split in two K7 panels, until
+/// every component meets its tolerance or `max_panels` panels are in use.
+/// Returns the values, the summed error estimates and the evaluations.
 fn integrate_pieces<const N: usize>(
     f: &mut impl FnMut(f64) -> [f64; N],
     breaks: &[f64],
-    abs_tol: f64,
-    rel_tol: f64,
-    floor: f64,
+    tolerance: impl Fn(&[f64; N]) -> [f64; N],
     max_panels: usize,
 ) -> ([f64; N], [f64; N], usize) {
-    struct Panel<const N: usize> {
-        a: f64,
-        b: f64,
-        v: [f64; N],
-        e: [f64; N],
-    }
-    fn panel<const N: usize>(f: &mut impl FnMut(f64) -> [f64; N], a: f64, b: f64) -> Panel<N> {
-        let r = integrate_adaptive(&mut *f, a, b, 0.0, 0.0, 1);
-        Panel {
-            a,
-            b,
-            v: r.value,
-            e: r.error,
-        }
-    }
-    fn sums<const N: usize>(panels: &[Panel<N>]) -> ([f64; N], [f64; N]) {
+    fn sums<const N: usize>(panels: &[NestedPanel<N>]) -> ([f64; N], [f64; N]) {
         let mut v = [0.0; N];
         let mut e = [0.0; N];
         for p in panels {
             for i in 0..N {
-                v[i] += p.v[i];
-                e[i] += p.e[i];
+                v[i] += p.value[i];
+                e[i] += p.error[i];
             }
         }
         (v, e)
     }
-    let mut panels: Vec<Panel<N>> = Vec::new();
+    let mut panels: Vec<NestedPanel<N>> = Vec::new();
     for w in breaks.windows(2) {
         if w[1] > w[0] {
-            panels.push(panel(f, w[0], w[1]));
+            panels.push(NestedPanel::new(f, w[0], w[1]));
         }
     }
-    let mut evaluations = 15 * panels.len();
+    let mut evaluations = 7 * panels.len();
     let (mut value, mut error) = sums(&panels);
     let mut since_exact = 0;
     loop {
-        let vmax = value.iter().fold(0.0_f64, |m, x| m.max(x.abs()));
-        let tol: [f64; N] = std::array::from_fn(|i| abs_tol.max(rel_tol * value[i].abs().max(floor * vmax)));
+        let tol = tolerance(&value);
         let done = (0..N).all(|i| error[i] <= tol[i]);
         if done || panels.len() >= max_panels || panels.is_empty() {
             let (value, error) = sums(&panels);
             return (value, error, evaluations);
         }
-        let score = |p: &Panel<N>| {
+        let score = |p: &NestedPanel<N>| {
             (0..N).fold(0.0_f64, |m, i| {
                 m.max(if tol[i] > 0.0 {
-                    p.e[i] / tol[i]
-                } else if p.e[i] > 0.0 {
+                    p.error[i] / tol[i]
+                } else if p.error[i] > 0.0 {
                     f64::MAX
                 } else {
                     0.0
@@ -557,23 +554,33 @@ fn integrate_pieces<const N: usize>(
             .map(|(i, p)| (i, score(p)))
             .max_by(|x, y| x.1.total_cmp(&y.1))
             .map_or(0, |(i, _)| i);
-        let old = panels.swap_remove(worst);
-        let m = 0.5 * (old.a + old.b);
-        if !(m > old.a && m < old.b) {
-            // Cannot be split further in f64: keep it and stop, honestly unconverged.
-            panels.push(old);
-            let (value, error) = sums(&panels);
-            return (value, error, evaluations);
+        let old = panels[worst];
+        if old.extendable() {
+            panels[worst].extend(f);
+            evaluations += 8;
+            let new = &panels[worst];
+            for i in 0..N {
+                value[i] += new.value[i] - old.value[i];
+                error[i] += new.error[i] - old.error[i];
+            }
+        } else {
+            let m = 0.5 * (old.a + old.b);
+            if !(m > old.a && m < old.b) {
+                // Cannot be split further in f64: keep it and stop, honestly unconverged.
+                let (value, error) = sums(&panels);
+                return (value, error, evaluations);
+            }
+            panels.swap_remove(worst);
+            let p1 = NestedPanel::new(f, old.a, m);
+            let p2 = NestedPanel::new(f, m, old.b);
+            evaluations += 14;
+            for i in 0..N {
+                value[i] += p1.value[i] + p2.value[i] - old.value[i];
+                error[i] += p1.error[i] + p2.error[i] - old.error[i];
+            }
+            panels.push(p1);
+            panels.push(p2);
         }
-        let p1 = panel(f, old.a, m);
-        let p2 = panel(f, m, old.b);
-        evaluations += 30;
-        for i in 0..N {
-            value[i] += p1.v[i] + p2.v[i] - old.v[i];
-            error[i] += p1.e[i] + p2.e[i] - old.e[i];
-        }
-        panels.push(p1);
-        panels.push(p2);
         since_exact += 1;
         if since_exact >= 32 {
             (value, error) = sums(&panels);
@@ -588,8 +595,13 @@ fn columns_relative(ray: &Ray, t0: f64, t1: f64, rel_tol: f64) -> ([f64; 3], [f6
         return ([0.0; 3], [0.0; 3], 0);
     }
     let (cuts, n) = ray.cuts(t0, t1);
-    let (v, mut e, evals) = integrate_pieces(&mut |t| densities(ray.height_radius(t).0), &cuts[..n], 0.0, rel_tol, 0.0, 4000);
-    // |K15 − G7| can be exactly 0 on a nearly constant piece; add a rounding floor.
+    let (v, mut e, evals) = integrate_pieces(
+        &mut |t| densities(ray.height_radius(t).0),
+        &cuts[..n],
+        |v| v.map(|x| rel_tol * x.abs()),
+        4000,
+    );
+    // A panel estimate can be exactly 0 on a nearly constant piece; add a rounding floor.
     for k in 0..3 {
         e[k] += 64.0 * f64::EPSILON * v[k].abs();
     }
@@ -669,10 +681,43 @@ fn sun_columns(tables: &ChapmanTables, h: f64, mu_s: f64, rho: [f64; 2]) -> Opti
     Some(([c.value[0], c.value[1], oz], [c.error[0], c.error[1], ozone_error(oz)]))
 }
 
-/// `a / b`, 0 where `b` is 0.
-#[inline]
-fn safe_div(a: f64, b: f64) -> f64 {
-    if b != 0.0 { a / b } else { 0.0 }
+/// The colour table's error bound may take at most this share of the
+/// model's relative tolerance ([`crate::sky::texture::SkyModel::rgb_evaluator`]).
+const COLOUR_TABLE_SHARE: f64 = 0.02;
+
+/// What [`AtmosphereParams::integrate_view_ray`] returns: the integral and
+/// its quadrature error per output, the integrand evaluations, and the
+/// largest error bound of each species' column over the points, m.
+struct ViewIntegral<const M: usize> {
+    value: [f64; M],
+    error: [f64; M],
+    evaluations: usize,
+    column_error: [f64; 3],
+}
+
+/// The longest Rayleigh and ozone columns observer → scattering point → sun
+/// can have, m: each of the two rays lies on one straight line through the
+/// atmosphere, whose column is at most that of the line of lowest perigee —
+/// for Rayleigh the line tangent to the ground (2 × 282 km), for ozone the
+/// largest over tangent heights 0…40 km (sampled every 250 m, plus 2 %). The
+/// colour table covers these; anything beyond is summed exactly.
+fn longest_columns() -> &'static [f64; 2] {
+    static LONGEST: OnceLock<[f64; 2]> = OnceLock::new();
+    LONGEST.get_or_init(|| {
+        let full_line = |h: f64| {
+            let c = columns_to_boundary(h, 0.0, 1e-9).columns;
+            [2.0 * c.rayleigh_m, 2.0 * c.ozone_m]
+        };
+        let rayleigh = full_line(0.0)[0];
+        let ozone = (0..=160).map(|k| full_line(250.0 * f64::from(k))[1]).fold(0.0, f64::max);
+        [2.0 * rayleigh * 1.02, 2.0 * ozone * 1.02]
+    })
+}
+
+/// Per-component tolerances `rel_tol · max(|v_i|, 10⁻² max_j |v_j|)`.
+fn relative_with_floor<const N: usize>(v: &[f64; N], rel_tol: f64) -> [f64; N] {
+    let vmax = v.iter().fold(0.0_f64, |m, x| m.max(x.abs()));
+    v.map(|x| rel_tol * x.abs().max(1e-2 * vmax))
 }
 
 /// `b > a`, false for NaN.
@@ -953,8 +998,8 @@ impl AtmosphereParams {
     /// receive no sunlight (twilight, the earth's shadow on the anti-solar
     /// sky). `rel_tol` (clamped to 1e-13…0.1, NaN → 1e-4) bounds each sample's
     /// estimated error by `rel_tol · max(|L(λ)|, 10⁻² max_λ |L|)`; the
-    /// estimate is the summed `|K15 − G7|` (conservative for these smooth
-    /// pieces) plus the inner columns' effect. At most 2 000 panels are used;
+    /// estimate is the summed `|K7 − G3|` or `|P15 − K7|` of the panels
+    /// (conservative for these smooth pieces) plus the inner columns' effect. At most 2 000 panels are used;
     /// the estimate stays honest if that budget runs out. `sun_intensity`
     /// does not apply (Blender's convention). Parameters are assumed valid
     /// ([`Self::validate`]).
@@ -1036,53 +1081,177 @@ impl AtmosphereParams {
     /// pass: `L = p_R(ν)·parts[0] + p_M(ν)·parts[1]`. Errors per part.
     fn single_scattering_parts(&self, view_dir: DVec3, rel_tol: f64) -> ([Spectrum; 2], [Spectrum; 2], usize) {
         const N: usize = SPECTRAL_SAMPLES;
-        let idx: [usize; N] = std::array::from_fn(|i| i);
-        let (value, error, evaluations) = self.scattering_parts_at::<{ 2 * N }>(view_dir, rel_tol, &idx);
-        let mut parts = [[0.0; N]; 2];
-        let mut errors = [[0.0; N]; 2];
-        for k in 0..2 {
-            for i in 0..N {
-                parts[k][i] = value[k * N + i];
-                errors[k][i] = error[k * N + i];
-            }
-        }
-        (parts, errors, evaluations)
+        let (value, error, evaluations) = self.scattering_parts_spectral(view_dir, rel_tol);
+        let split = |v: [f64; 2 * N]| -> [Spectrum; 2] { std::array::from_fn(|k| std::array::from_fn(|i| v[k * N + i])) };
+        (split(value), split(error), evaluations)
     }
 
-    /// The phase-free Rayleigh and Mie parts at the wavelengths `idx` (indices
-    /// into the 81-sample grid) only: `M = 2·idx.len()` values, the Rayleigh
-    /// parts first, with their errors. NaN for a bad direction.
-    fn scattering_parts_at<const M: usize>(&self, view_dir: DVec3, rel_tol: f64, idx: &[usize]) -> ([f64; M], [f64; M], usize) {
-        let n = idx.len();
-        debug_assert_eq!(2 * n, M);
-        let len = view_dir.length();
-        if !(len.is_finite() && len > 0.0) {
-            return ([f64::NAN; M], [f64::NAN; M], 0);
-        }
-        let v = view_dir / len;
-        let tol = sanitize_tol(rel_tol, 1e-4);
-        let s = self.sun_direction();
-        let nu = v.dot(s).clamp(-1.0, 1.0);
-        let view = self.observer_ray(v.z);
-        let Some((t_in, t_end, end)) = view.segment() else {
-            return ([0.0; M], [0.0; M], 0);
-        };
-        if !longer(t_in, t_end) {
-            return ([0.0; M], [0.0; M], 0);
-        }
+    /// The phase-free Rayleigh and Mie parts at the 81 wavelengths, Rayleigh
+    /// first, with their errors. NaN for a bad direction.
+    fn scattering_parts_spectral(
+        &self,
+        view_dir: DVec3,
+        rel_tol: f64,
+    ) -> ([f64; 2 * SPECTRAL_SAMPLES], [f64; 2 * SPECTRAL_SAMPLES], usize) {
+        const N: usize = SPECTRAL_SAMPLES;
+        const M: usize = 2 * N;
+        let n = N;
         let res = self.resolved();
         let e0 = solar_spectral_irradiance();
-        // Per node wavelength (the first M/2 entries are used): extinction per
-        // unit column of each species, and E₀·β_s of Rayleigh and Mie.
+        // Per wavelength (the first N of M entries are used, the layout of
+        // [`transmittances`]): extinction per unit column of each species,
+        // and E₀·β_s of Rayleigh and Mie.
         let mut sigma = [[0.0; M]; 3];
         let mut w_r = [0.0; M];
         let mut w_m = [0.0; M];
-        for (j, &i) in idx.iter().enumerate().take(M / 2) {
+        for i in 0..N {
             for k in 0..3 {
-                sigma[k][j] = res.sigma[k][i];
+                sigma[k][i] = res.sigma[k][i];
             }
-            w_r[j] = e0[i] * res.scat_r[i];
-            w_m[j] = e0[i] * res.scat_m;
+            w_r[i] = e0[i] * res.scat_r[i];
+            w_m[i] = e0[i] * res.scat_m;
+        }
+        let shade = |d: [f64; 3], rho_r: f64, rho_m: f64| -> [f64; M] {
+            let mut trans = [0.0; M];
+            transmittances(&sigma, d, &mut trans);
+            let mut out = [0.0; M];
+            for i in 0..N {
+                out[i] = trans[i] * w_r[i] * rho_r;
+                out[N + i] = trans[i] * w_m[i] * rho_m;
+            }
+            out
+        };
+        // The contract is on L(λ) = p_R·S_R + p_M·S_M: its error at most
+        // τ·F(λ), F = max(L(λ), 10⁻² max L). Each part k gets
+        // (τ/1.02)·max(S_k(λ), 10⁻²·F(λ)/p_k): then Σ_k p_k e_k ≤ τ·F.
+        let tau = sanitize_tol(rel_tol, 1e-4);
+        let (p_r, p_m) = self.phases(view_dir);
+        let tolerance = |v: &[f64; M]| -> [f64; M] {
+            let l: [f64; M] = std::array::from_fn(|i| if i < n { p_r * v[i] + p_m * v[n + i] } else { 0.0 });
+            let floor = 1e-2 * l.iter().fold(0.0f64, |m, x| m.max(x.abs()));
+            std::array::from_fn(|o| {
+                let (i, p) = if o < n { (o, p_r) } else { (o - n, p_m) };
+                tau / 1.02 * v[o].abs().max(1e-2 * l[i].abs().max(floor) / p)
+            })
+        };
+        let Some(ViewIntegral {
+            value,
+            mut error,
+            evaluations,
+            column_error,
+        }) = self.integrate_view_ray(view_dir, tolerance, shade)
+        else {
+            return ([f64::NAN; M], [f64::NAN; M], 0);
+        };
+        // The columns' error bounds, as optical depth: L·max δτ bounds |δL|
+        // (|e^{−τ−δτ} − e^{−τ}| ≤ e^{−τ}·δτ), plus rounding.
+        for i in 0..n {
+            let dtau = sigma[0][i] * column_error[0] + sigma[1][i] * column_error[1] + sigma[2][i] * column_error[2];
+            for k in 0..2 {
+                error[k * n + i] += value[k * n + i].abs() * (dtau + 64.0 * f64::EPSILON);
+            }
+        }
+        (value, error, evaluations)
+    }
+
+    /// The phase-free Rayleigh and Mie parts as CIE XYZ (`[Rayleigh, Mie]`,
+    /// each X, Y, Z in the units of [`crate::spectrum::spectrum_to_xyz`] of
+    /// the spectral parts), with the colour sum at every scattering point
+    /// taken from `table` ([`crate::sky::colour_table`]) instead of 81
+    /// exponentials. The errors add the table's relative error and the
+    /// columns' effect at the most strongly attenuated wavelength. NaN for a
+    /// bad direction. `table` must have been built from this atmosphere's
+    /// coefficients ([`Self::colour_table`]).
+    pub fn scattering_parts_xyz(&self, view_dir: DVec3, rel_tol: f64, table: &ColourTable) -> ([[f64; 3]; 2], [[f64; 3]; 2], usize) {
+        let sigma_m = self.aerosol_density * MIE_EXTINCTION_PER_M;
+        let shade = |d: [f64; 3], rho_r: f64, rho_m: f64| -> [f64; 6] {
+            let (g, _) = table.lookup(d[0], d[2]);
+            let t_m = exp_neg(sigma_m * d[1]);
+            let (a, b) = (rho_r * t_m, rho_m * t_m);
+            [g[0] * a, g[1] * a, g[2] * a, g[3] * b, g[4] * b, g[5] * b]
+        };
+        // The texture needs each Rec.709 channel of p_R·R + p_M·M to within
+        // τ·Y (Y its luminance). With m_j the largest |XYZ→Rec.709| entry of
+        // column j, giving component k's X, Y, Z the tolerances
+        // (τ/3.06)·max(Y_k, 10⁻²·Y/p_k)/m_j bounds every channel's error by
+        // τ·Σ_k max(p_k·Y_k, 10⁻²·Y)/1.02 ≤ τ·Y.
+        let tau = sanitize_tol(rel_tol, 1e-4);
+        let (p_r, p_m) = self.phases(view_dir);
+        let m = &crate::spectrum::XYZ_TO_REC709;
+        let inv_col_max: [f64; 3] = std::array::from_fn(|j| 1.0 / (0..3).fold(0.0f64, |x, c| x.max(m[c][j].abs())));
+        let tolerance = |v: &[f64; 6]| -> [f64; 6] {
+            let y = p_r * v[1] + p_m * v[4];
+            std::array::from_fn(|o| {
+                let (yk, p) = if o < 3 { (v[1], p_r) } else { (v[4], p_m) };
+                tau / 3.06 * yk.abs().max(1e-2 * y.abs() / p) * inv_col_max[o % 3]
+            })
+        };
+        let Some(ViewIntegral {
+            value,
+            mut error,
+            evaluations,
+            column_error,
+        }) = self.integrate_view_ray(view_dir, tolerance, shade)
+        else {
+            return ([[f64::NAN; 3]; 2], [[f64::NAN; 3]; 2], 0);
+        };
+        let c = &*COEFFICIENTS;
+        let max_of = |s: &Spectrum| s.iter().fold(0.0f64, |m, x| m.max(*x));
+        let dtau = self.air_density * max_of(&c.rayleigh) * column_error[0]
+            + sigma_m * column_error[1]
+            + self.ozone_density * max_of(&c.ozone) * column_error[2];
+        let charged = dtau + table.relative_error() + 64.0 * f64::EPSILON;
+        for o in 0..6 {
+            error[o] += value[o].abs() * charged;
+        }
+        let split = |v: [f64; 6]| [[v[0], v[1], v[2]], [v[3], v[4], v[5]]];
+        (split(value), split(error), evaluations)
+    }
+
+    /// The colour table of this atmosphere for [`Self::scattering_parts_xyz`],
+    /// refined until its measured relative error is at most `target_error`;
+    /// `None` if that needs more than [`crate::sky::colour_table::MAX_NODES`] nodes.
+    pub fn colour_table(&self, target_error: f64) -> Option<ColourTable> {
+        let res = self.resolved();
+        let sums = ColourSums::new(res.sigma[0], res.sigma[2], [&res.scat_r, &[res.scat_m; SPECTRAL_SAMPLES]]);
+        ColourTable::build(sums, *longest_columns(), target_error)
+    }
+
+    /// The single-scattering integral along `view_dir` of the integrand
+    /// `shade(columns, ρ_R, ρ_M)`, where the columns `[Rayleigh, Mie, ozone]`
+    /// run from the observer to the scattering point and on to the sun (m);
+    /// points in the earth's shadow contribute 0. The geometry shared by the
+    /// spectral and the tabulated colour paths: the ray's part inside the
+    /// atmosphere, its cut points (ends, shadow edges, ozone-kink crossings
+    /// of the view and the sun rays, lowest point) and the globally adaptive
+    /// quadrature over them ([`integrate_pieces`], at most 2 000 panels)
+    /// until each output's error is within `tolerance(values)`.
+    /// `None` for a bad direction; zeros where the ray misses the atmosphere.
+    fn integrate_view_ray<const M: usize>(
+        &self,
+        view_dir: DVec3,
+        tolerance: impl Fn(&[f64; M]) -> [f64; M],
+        shade: impl Fn([f64; 3], f64, f64) -> [f64; M],
+    ) -> Option<ViewIntegral<M>> {
+        let len = view_dir.length();
+        if !(len.is_finite() && len > 0.0) {
+            return None;
+        }
+        let v = view_dir / len;
+        let s = self.sun_direction();
+        let nu = v.dot(s).clamp(-1.0, 1.0);
+        let view = self.observer_ray(v.z);
+        let empty = ViewIntegral {
+            value: [0.0; M],
+            error: [0.0; M],
+            evaluations: 0,
+            column_error: [0.0; 3],
+        };
+        let Some((t_in, t_end, end)) = view.segment() else {
+            return Some(empty);
+        };
+        if !longer(t_in, t_end) {
+            return Some(empty);
         }
         let o_s = view.r0 * s.z;
 
@@ -1107,75 +1276,18 @@ impl AtmosphereParams {
                 return [0.0; M];
             };
             let (cv, ev) = columns.at(t, h, r, [rho_r, rho_m]);
-            let d = [cs[0] + cv[0], cs[1] + cv[1], cs[2] + cv[2]];
             for k in 0..3 {
                 column_error[k] = column_error[k].max(es[k] + ev[k]);
             }
-            let mut trans = [0.0; M];
-            transmittances(&sigma, d, &mut trans);
-            let mut out = [0.0; M];
-            for i in 0..M / 2 {
-                out[i] = trans[i] * w_r[i] * rho_r;
-                out[M / 2 + i] = trans[i] * w_m[i] * rho_m;
-            }
-            out
+            shade([cs[0] + cv[0], cs[1] + cv[1], cs[2] + cv[2]], rho_r, rho_m)
         };
-        let (value, mut error, evaluations) = integrate_pieces(&mut f, &breaks, 0.0, tol, 1e-2, 2000);
-        // The columns' error bounds, as optical depth: L·max δτ bounds |δL|
-        // (|e^{−τ−δτ} − e^{−τ}| ≤ e^{−τ}·δτ), plus rounding.
-        for i in 0..n {
-            let dtau = sigma[0][i] * column_error[0] + sigma[1][i] * column_error[1] + sigma[2][i] * column_error[2];
-            for k in 0..2 {
-                error[k * n + i] += value[k * n + i].abs() * (dtau + 64.0 * f64::EPSILON);
-            }
-        }
-        (value, error, evaluations)
-    }
-
-    /// The phase-free Rayleigh and Mie parts on a reduced wavelength set
-    /// ([`Bands`]): the integrals at the node wavelengths, the 81-sample
-    /// spectra reconstructed from the smooth factor `g = S / (E₀ β_s)` as a
-    /// function of the Rayleigh and ozone extinction coefficients (see
-    /// [`crate::sky::bands`]). The errors are the nodes' quadrature errors,
-    /// expanded the same way; the reconstruction's own error is not included
-    /// (it is measured by the caller).
-    pub fn single_scattering_parts_banded(&self, view_dir: DVec3, rel_tol: f64, bands: Bands) -> ([Spectrum; 2], [Spectrum; 2], usize) {
-        let idx: Vec<usize> = bands.nodes().collect();
-        let (value, error, evaluations): (Vec<f64>, Vec<f64>, usize) = match bands {
-            Bands::Nodes9 => {
-                let (v, e, n) = self.scattering_parts_at::<18>(view_dir, rel_tol, &idx);
-                (v.to_vec(), e.to_vec(), n)
-            }
-            Bands::Nodes17 => {
-                let (v, e, n) = self.scattering_parts_at::<34>(view_dir, rel_tol, &idx);
-                (v.to_vec(), e.to_vec(), n)
-            }
-        };
-        let n = idx.len();
-        let res = self.resolved();
-        let e0 = solar_spectral_irradiance();
-        let carrier: [Spectrum; 2] = [
-            std::array::from_fn(|i| e0[i] * res.scat_r[i]),
-            std::array::from_fn(|i| e0[i] * res.scat_m),
-        ];
-        let expander = band_expander(bands, self.air_density > 0.0, self.ozone_density > 0.0);
-        let mut parts = [[0.0; SPECTRAL_SAMPLES]; 2];
-        let mut errors = [[0.0; SPECTRAL_SAMPLES]; 2];
-        for k in 0..2 {
-            if value[k * n..(k + 1) * n].iter().any(|x| x.is_nan()) {
-                return ([[f64::NAN; SPECTRAL_SAMPLES]; 2], [[f64::NAN; SPECTRAL_SAMPLES]; 2], evaluations);
-            }
-            let g: Vec<f64> = (0..n).map(|j| safe_div(value[k * n + j], carrier[k][idx[j]])).collect();
-            let ge: Vec<f64> = (0..n).map(|j| safe_div(error[k * n + j], carrier[k][idx[j]])).collect();
-            let gs = expander.apply(&g);
-            // Errors: the largest relative node error applied to the whole spectrum.
-            let rel = (0..n).fold(0.0f64, |m, j| if g[j] > 0.0 { m.max(ge[j] / g[j]) } else { m });
-            for i in 0..SPECTRAL_SAMPLES {
-                parts[k][i] = carrier[k][i] * gs[i];
-                errors[k][i] = parts[k][i].abs() * rel;
-            }
-        }
-        (parts, errors, evaluations)
+        let (value, error, evaluations) = integrate_pieces(&mut f, &breaks, tolerance, 2000);
+        Some(ViewIntegral {
+            value,
+            error,
+            evaluations,
+            column_error,
+        })
     }
 
     /// Mean single-scattered spectral radiance over all directions at the
@@ -1291,29 +1403,12 @@ impl AtmosphereParams {
                 (-tau).exp() * (res.scat_r[i] * rho_r + res.scat_m * rho_m) * ambient[i]
             })
         };
-        let (value, mut error, evaluations) = integrate_pieces(&mut f, &cuts[..n], 0.0, tol, 1e-2, 2000);
+        let (value, mut error, evaluations) = integrate_pieces(&mut f, &cuts[..n], |v| relative_with_floor(v, tol), 2000);
         for i in 0..SPECTRAL_SAMPLES {
             error[i] += value[i].abs() * (dtau_max[i] + 64.0 * f64::EPSILON);
         }
         (value, error, evaluations)
     }
-}
-
-/// The reconstruction of [`Bands::expand`] with the Rayleigh and ozone
-/// extinction spectra as variables (a species switched off is constant). It
-/// depends on the density multipliers only through whether they are zero
-/// (the variables are rescaled to [−1, 1]), so it is built once per case.
-fn band_expander(bands: Bands, air: bool, ozone: bool) -> &'static Expander {
-    static CACHE: [OnceLock<Expander>; 8] = [const { OnceLock::new() }; 8];
-    let b = match bands {
-        Bands::Nodes9 => 0,
-        Bands::Nodes17 => 1,
-    };
-    CACHE[4 * b + 2 * usize::from(air) + usize::from(ozone)].get_or_init(|| {
-        let c = &*COEFFICIENTS;
-        let off = [0.0; SPECTRAL_SAMPLES];
-        bands.expander(&[if air { &c.rayleigh } else { &off }, if ozone { &c.ozone } else { &off }])
-    })
 }
 
 /// Pushes the distances in `(t0, t1)` where the view ray crosses the
@@ -1368,17 +1463,51 @@ impl crate::sky::texture::SkyModel for AtmosphereParams {
         )
     }
 
-    fn sky_components_banded(&self, view_dir: DVec3, rel_tol: f64, bands: Bands) -> Option<crate::sky::texture::SkyComponents> {
-        let ([r, m], [er, em], _) = self.single_scattering_parts_banded(view_dir, rel_tol, bands);
-        let (p_r, p_m) = self.phases(view_dir);
-        let err: Spectrum = std::array::from_fn(|i| p_r * er[i] + p_m * em[i]);
-        Some((
-            vec![
-                (Some(PhaseFunction::Rayleigh), r),
-                (Some(PhaseFunction::CornetteShanks { g: MIE_G }), m),
-            ],
-            err,
-        ))
+    fn rgb_evaluator(&self, rel_tol: f64) -> Result<crate::sky::texture::RgbEvaluator<'_>, String> {
+        // The table's error is charged to every point: keep it a small share of the model's tolerance.
+        let target = COLOUR_TABLE_SHARE * sanitize_tol(rel_tol, 1e-4);
+        let t0 = std::time::Instant::now();
+        let table = self.colour_table(target).ok_or_else(|| {
+            format!(
+                "the colour table over the columns would need more than {} nodes for a relative error of {target:.1e} at these densities",
+                crate::sky::colour_table::MAX_NODES
+            )
+        })?;
+        let ms = 1e3 * t0.elapsed().as_secs_f64();
+        let [n_r, n_o] = table.nodes();
+        let [c_r, c_o] = table.max_columns();
+        let reason = format!(
+            "the 81-wavelength colour sums (CIE 1931 XYZ of sun × scattering × e^(−τ)) tabulated over the Rayleigh and ozone columns \
+             ({n_r} × {n_o} nodes up to {:.0} km and {:.0} km, built in {ms:.1} ms): bicubic in ln G, largest relative error at the cell centres \
+             {:.1e} (charged as {:.1e} to every point, ≤ {COLOUR_TABLE_SHARE} × the model tolerance)",
+            c_r / 1e3,
+            c_o / 1e3,
+            0.5 * table.relative_error(),
+            table.relative_error(),
+        );
+        let eval = move |d: DVec3, tol: f64| {
+            let ([r, m], [er, em], _) = self.scattering_parts_xyz(d, tol, &table);
+            let (p_r, p_m) = self.phases(d);
+            // |M|·|e| bounds the Rec.709 error of an XYZ error e.
+            let abs_rgb = |e: [f64; 3]| {
+                let m = &crate::spectrum::XYZ_TO_REC709;
+                std::array::from_fn::<f64, 3, _>(|c| (0..3).map(|j| m[c][j].abs() * e[j]).sum())
+            };
+            let (ar, am) = (abs_rgb(er), abs_rgb(em));
+            let err = (0..3).fold(0.0f64, |x, c| x.max(p_r * ar[c] + p_m * am[c]));
+            (
+                vec![
+                    (Some(PhaseFunction::Rayleigh), crate::spectrum::xyz_to_rec709(r)),
+                    (Some(PhaseFunction::CornetteShanks { g: MIE_G }), crate::spectrum::xyz_to_rec709(m)),
+                ],
+                err,
+            )
+        };
+        Ok(crate::sky::texture::RgbEvaluator {
+            eval: Box::new(eval),
+            label: "xyz-table".into(),
+            reason,
+        })
     }
 
     fn sun_direction(&self) -> DVec3 {
@@ -1462,12 +1591,21 @@ impl crate::sky::texture::SkyModel for AtmosphereWithMultipleScattering {
         (parts, std::array::from_fn(|i| e[i] + ae[i]))
     }
 
-    fn sky_components_banded(&self, view_dir: DVec3, rel_tol: f64, bands: Bands) -> Option<crate::sky::texture::SkyComponents> {
-        let (mut parts, e) = self.params.sky_components_banded(view_dir, rel_tol, bands)?;
+    fn rgb_evaluator(&self, rel_tol: f64) -> Result<crate::sky::texture::RgbEvaluator<'_>, String> {
+        let crate::sky::texture::RgbEvaluator { eval, label, reason } = self.params.rgb_evaluator(rel_tol)?;
         // The ambient term stays spectral (it is smooth and cheap next to the single scattering).
-        let (a, ae) = self.ambient_term(view_dir, rel_tol);
-        parts.push((None, a));
-        Some((parts, std::array::from_fn(|i| e[i] + ae[i])))
+        let with_ambient = move |d: DVec3, tol: f64| {
+            let (mut parts, e) = eval(d, tol);
+            let (a, ae) = self.ambient_term(d, tol);
+            let ae = crate::spectrum::spectrum_to_rec709(&ae.map(f64::abs));
+            parts.push((None, crate::spectrum::spectrum_to_rec709(&a)));
+            (parts, e + ae.iter().fold(0.0f64, |m, x| m.max(x.abs())))
+        };
+        Ok(crate::sky::texture::RgbEvaluator {
+            eval: Box::new(with_ambient),
+            label,
+            reason: format!("{reason}; the multiple-scattering term spectral"),
+        })
     }
 
     fn multiple_scattering(&self) -> Option<String> {

@@ -4,7 +4,7 @@
 //! Blender, and [`SunLamp`] gives the matching sun lamp.
 
 pub mod atmosphere;
-pub mod bands;
+pub mod colour_table;
 pub mod klassen;
 pub mod optical_depth;
 pub mod texture;
@@ -106,19 +106,16 @@ pub fn render_world_with(
                 "spectral (81 samples) at the evaluated points ({}); pixels in linear Rec.709",
                 colour.reason
             ),
-            other => format!(
-                "{other}: the integrals at a reduced set of wavelengths, spectra reconstructed before Rec.709 ({})",
-                colour.reason
-            ),
+            other => format!("{other}: {}; pixels in linear Rec.709", colour.reason),
         },
         ..Default::default()
     };
     if colour.path != "spectral" {
         plan.left_out(
-            "wavelengths between the band nodes",
+            "81 exponentials per scattering point",
             format!(
-                "the integrals are evaluated at {}; the other wavelengths are reconstructed from a least-squares fit of the smooth factor (measured against the full spectral path: {})",
-                colour.path, colour.reason
+                "the colour of the attenuated sunlight depends on the Rayleigh and ozone columns only (the aerosol is grey), so its CIE XYZ was tabulated once over them ({}); every wavelength still attenuates with its own exponential in the table",
+                colour.path
             ),
         );
     }
