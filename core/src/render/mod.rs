@@ -560,8 +560,7 @@ fn report_stage<const C: usize>(stage_lights: &stage::StageLights<C>, stats: &Ro
     report.plan.computed(
         format!("{} lit segments on {} view rays", stats.stage_segments, stats.stage_rays),
         format!(
-            "adaptive Gauss-Kronrod per segment to the relative tolerance (G3-K7 at tolerances >= {:e}, else G7-K15); {} shadow rays (where the lights' visibility grids did not decide)",
-            stage::K7_MIN_TOLERANCE,
+            "adaptive Gauss-Kronrod-Patterson per segment to the relative tolerance (K7, extended to P15 before a panel is split); {} shadow rays (where the lights' visibility grids did not decide)",
             stats.stage_shadow_rays
         ),
     );

@@ -213,7 +213,7 @@
 //! aid, not physics with an error bar.
 
 use crate::medium::phase::PhaseFunction;
-use crate::numeric::NestedPanel;
+use crate::numeric::integrate_nested;
 use crate::sky::colour_table::{ColourSums, ColourTable};
 use crate::sky::optical_depth::{
     ChapmanTables, Col2, Line, OzoneCumulative, chapman_tables, column_to_infinity, column_to_top, exp_neg, ozone_error, transmittances,
@@ -496,97 +496,15 @@ pub struct ColumnResult {
     pub evaluations: usize,
 }
 
-/// Globally adaptive quadrature of a vector-valued `f` over the pieces
-/// between consecutive `breaks` (empty pieces skipped), on the nested
-/// G3 ⊂ K7 ⊂ P15 panels of [`NestedPanel`]: every piece starts as one K7
-/// panel; the panel with the largest error relative to its component's
-/// absolute tolerance (`tolerance(values so far)`, per component) is
-/// extended to P15 if it still can be, else split in two K7 panels, until
-/// every component meets its tolerance or `max_panels` panels are in use.
-/// Returns the values, the summed error estimates and the evaluations.
+/// [`crate::numeric::integrate_nested`]: (values, summed error estimates, evaluations).
 fn integrate_pieces<const N: usize>(
     f: &mut impl FnMut(f64) -> [f64; N],
     breaks: &[f64],
     tolerance: impl Fn(&[f64; N]) -> [f64; N],
     max_panels: usize,
 ) -> ([f64; N], [f64; N], usize) {
-    fn sums<const N: usize>(panels: &[NestedPanel<N>]) -> ([f64; N], [f64; N]) {
-        let mut v = [0.0; N];
-        let mut e = [0.0; N];
-        for p in panels {
-            for i in 0..N {
-                v[i] += p.value[i];
-                e[i] += p.error[i];
-            }
-        }
-        (v, e)
-    }
-    let mut panels: Vec<NestedPanel<N>> = Vec::new();
-    for w in breaks.windows(2) {
-        if w[1] > w[0] {
-            panels.push(NestedPanel::new(f, w[0], w[1]));
-        }
-    }
-    let mut evaluations = 7 * panels.len();
-    let (mut value, mut error) = sums(&panels);
-    let mut since_exact = 0;
-    loop {
-        let tol = tolerance(&value);
-        let done = (0..N).all(|i| error[i] <= tol[i]);
-        if done || panels.len() >= max_panels || panels.is_empty() {
-            let (value, error) = sums(&panels);
-            return (value, error, evaluations);
-        }
-        let score = |p: &NestedPanel<N>| {
-            (0..N).fold(0.0_f64, |m, i| {
-                m.max(if tol[i] > 0.0 {
-                    p.error[i] / tol[i]
-                } else if p.error[i] > 0.0 {
-                    f64::MAX
-                } else {
-                    0.0
-                })
-            })
-        };
-        let worst = panels
-            .iter()
-            .enumerate()
-            .map(|(i, p)| (i, score(p)))
-            .max_by(|x, y| x.1.total_cmp(&y.1))
-            .map_or(0, |(i, _)| i);
-        let old = panels[worst];
-        if old.extendable() {
-            panels[worst].extend(f);
-            evaluations += 8;
-            let new = &panels[worst];
-            for i in 0..N {
-                value[i] += new.value[i] - old.value[i];
-                error[i] += new.error[i] - old.error[i];
-            }
-        } else {
-            let m = 0.5 * (old.a + old.b);
-            if !(m > old.a && m < old.b) {
-                // Cannot be split further in f64: keep it and stop, honestly unconverged.
-                let (value, error) = sums(&panels);
-                return (value, error, evaluations);
-            }
-            panels.swap_remove(worst);
-            let p1 = NestedPanel::new(f, old.a, m);
-            let p2 = NestedPanel::new(f, m, old.b);
-            evaluations += 14;
-            for i in 0..N {
-                value[i] += p1.value[i] + p2.value[i] - old.value[i];
-                error[i] += p1.error[i] + p2.error[i] - old.error[i];
-            }
-            panels.push(p1);
-            panels.push(p2);
-        }
-        since_exact += 1;
-        if since_exact >= 32 {
-            (value, error) = sums(&panels);
-            since_exact = 0;
-        }
-    }
+    let r = integrate_nested(f, breaks, tolerance, max_panels);
+    (r.value, r.error, r.evaluations)
 }
 
 /// Columns over `[t0, t1]` of `ray`, each species to `rel_tol` of its own total.
