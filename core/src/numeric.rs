@@ -118,36 +118,59 @@ pub(crate) const WG: [f64; 4] = [
     0.417_959_183_673_469_4,
 ];
 
+/// Gauss (7-point) weights at the abscissae [`XGK`] (0 at the Kronrod-only ones).
+const WG_AT_XGK: [f64; 8] = [0.0, WG[0], 0.0, WG[1], 0.0, WG[2], 0.0, WG[3]];
+
 /// One G7–K15 panel on `[a, b]`: (Kronrod value, |Kronrod − Gauss|).
 fn gk15<const N: usize>(f: &mut impl FnMut(f64) -> [f64; N], a: f64, b: f64) -> ([f64; N], [f64; N]) {
-    let c = 0.5 * (a + b);
-    let h = 0.5 * (b - a);
-    let fc = f(c);
-    let mut k = [0.0; N];
-    let mut g = [0.0; N];
-    for i in 0..N {
-        k[i] = WGK[7] * fc[i];
-        g[i] = WG[3] * fc[i];
-    }
-    for j in 0..7 {
-        let dx = h * XGK[j];
-        let f1 = f(c - dx);
-        let f2 = f(c + dx);
-        for i in 0..N {
-            let s = f1[i] + f2[i];
-            k[i] += WGK[j] * s;
-            if j % 2 == 1 {
-                g[i] += WG[j / 2] * s;
+    let [k, g] = symmetric_sums(f, 0.5 * (a + b), 0.5 * (b - a), &XGK[..7], [&WGK, &WG_AT_XGK], true);
+    (k, std::array::from_fn(|i| (k[i] - g[i]).abs()))
+}
+
+/// The weighted sums of a symmetric rule on the panel with centre `c` and
+/// half-width `h`: per weight set `w[r]`, `h·Σ_j w[r][j]·(f(c − h·x_j) + f(c + h·x_j))`,
+/// plus `h·w[r][x.len()]·f(c)` with `centre` (each set then has one weight
+/// more than `x`, the centre's last). Zero weights are skipped, so a rule
+/// that uses only some of the nodes never sees the others' values. Shared by
+/// the panel rules, which evaluate `f` once per node for all their sets.
+#[inline(always)]
+fn symmetric_sums<const N: usize, const R: usize>(
+    f: &mut impl FnMut(f64) -> [f64; N],
+    c: f64,
+    h: f64,
+    x: &[f64],
+    w: [&[f64]; R],
+    centre: bool,
+) -> [[f64; N]; R] {
+    let mut out = [[0.0; N]; R];
+    if centre {
+        let fc = f(c);
+        for r in 0..R {
+            let wc = w[r][x.len()];
+            for i in 0..N {
+                out[r][i] = wc * fc[i];
             }
         }
     }
-    let mut err = [0.0; N];
-    for i in 0..N {
-        k[i] *= h;
-        g[i] *= h;
-        err[i] = (k[i] - g[i]).abs();
+    for (j, &xj) in x.iter().enumerate() {
+        let dx = h * xj;
+        let f1 = f(c - dx);
+        let f2 = f(c + dx);
+        for (r, sum) in out.iter_mut().enumerate() {
+            let wj = w[r][j];
+            if wj != 0.0 {
+                for i in 0..N {
+                    sum[i] += wj * (f1[i] + f2[i]);
+                }
+            }
+        }
     }
-    (k, err)
+    for sum in &mut out {
+        for v in sum.iter_mut() {
+            *v *= h;
+        }
+    }
+    out
 }
 
 /// Gauss–Kronrod (3, 7) abscissae on [-1, 1]: the Kronrod extension of the
@@ -163,8 +186,9 @@ const WK7: [f64; 4] = [
     0.401_397_414_775_962_2,
     0.450_916_538_658_474_1,
 ];
-/// Gauss (3-point) weights for `XK7[1]` and the centre: 5/9 and 8/9.
-const WG3: [f64; 2] = [5.0 / 9.0, 8.0 / 9.0];
+/// Gauss (3-point) weights at the abscissae [`XK7`]: 5/9 at ±√(3/5), 8/9 at
+/// the centre, 0 at the Kronrod-only ones.
+const WG3_AT_XK7: [f64; 4] = [0.0, 5.0 / 9.0, 0.0, 8.0 / 9.0];
 
 /// Patterson's 15-point extension of [`XK7`]: the eight new abscissae
 /// (positive half; the roots of the polynomial orthogonal to every
@@ -217,41 +241,12 @@ pub(crate) struct NestedPanel<const N: usize> {
 impl<const N: usize> NestedPanel<N> {
     /// The K7 panel on `[a, b]` (7 evaluations).
     pub fn new(f: &mut impl FnMut(f64) -> [f64; N], a: f64, b: f64) -> Self {
-        let c = 0.5 * (a + b);
-        let h = 0.5 * (b - a);
-        let fc = f(c);
-        let mut k = [0.0; N];
-        let mut g = [0.0; N];
-        let mut p = [0.0; N];
-        for i in 0..N {
-            k[i] = WK7[3] * fc[i];
-            g[i] = WG3[1] * fc[i];
-            p[i] = WP15_K7[3] * fc[i];
-        }
-        for j in 0..3 {
-            let dx = h * XK7[j];
-            let f1 = f(c - dx);
-            let f2 = f(c + dx);
-            for i in 0..N {
-                let s = f1[i] + f2[i];
-                k[i] += WK7[j] * s;
-                p[i] += WP15_K7[j] * s;
-                if j == 1 {
-                    g[i] += WG3[0] * s;
-                }
-            }
-        }
-        let mut error = [0.0; N];
-        for i in 0..N {
-            k[i] *= h;
-            p[i] *= h;
-            error[i] = (k[i] - h * g[i]).abs();
-        }
+        let [k, g, p] = symmetric_sums(f, 0.5 * (a + b), 0.5 * (b - a), &XK7[..3], [&WK7, &WG3_AT_XK7, &WP15_K7], true);
         NestedPanel {
             a,
             b,
             value: k,
-            error,
+            error: std::array::from_fn(|i| (k[i] - g[i]).abs()),
             partial: Some(p),
         }
     }
@@ -267,17 +262,9 @@ impl<const N: usize> NestedPanel<N> {
         let Some(mut p) = self.partial.take() else {
             return;
         };
-        let c = 0.5 * (self.a + self.b);
-        let h = 0.5 * (self.b - self.a);
-        for j in 0..4 {
-            let dx = h * XP15_NEW[j];
-            let f1 = f(c - dx);
-            let f2 = f(c + dx);
-            for i in 0..N {
-                p[i] += h * WP15_NEW[j] * (f1[i] + f2[i]);
-            }
-        }
+        let [new] = symmetric_sums(f, 0.5 * (self.a + self.b), 0.5 * (self.b - self.a), &XP15_NEW, [&WP15_NEW], false);
         for i in 0..N {
+            p[i] += new[i];
             self.error[i] = (p[i] - self.value[i]).abs();
             self.value[i] = p[i];
         }
