@@ -377,8 +377,9 @@ pub(crate) fn integrate_nested<const N: usize>(
 
 /// [`integrate_adaptive`] on the nested panels of [`integrate_nested`]: K7
 /// first (7 evaluations: at moderate tolerances one such panel is often
-/// enough), extended to P15 before it is split (15, as one G7–K15 panel), until every component's error is at most
-/// `max(abs_tol, rel_tol·|value|)` or `max_panels` panels are in use.
+/// enough), extended to P15 before it is split (15, as one G7–K15 panel),
+/// until every component's error is at most `max(abs_tol, rel_tol·|value|)`
+/// or `max_panels` panels are in use.
 /// `b < a` integrates backwards (the negated integral over `[b, a]`).
 pub fn integrate_adaptive_nested<const N: usize>(
     mut f: impl FnMut(f64) -> [f64; N],
