@@ -277,9 +277,10 @@ impl<const N: usize> NestedPanel<N> {
 /// panel; the panel with the largest error relative to its component's
 /// absolute tolerance (`tolerance(values so far)`, per component) is
 /// extended to P15 if it still can be, else split in two K7 panels, until
-/// every component meets its tolerance or `max_panels` panels are in use
-/// (or a panel can no longer be split in f64): then `converged` is false and
-/// the estimate stays honest.
+/// every component meets its tolerance, or the worst panel would need a
+/// split beyond `max_panels` panels (or below f64's resolution): then
+/// `converged` is false and the estimate stays honest. NaN among the breaks
+/// gives NaN, unconverged.
 pub(crate) fn integrate_nested<const N: usize>(
     f: &mut impl FnMut(f64) -> [f64; N],
     breaks: &[f64],
@@ -297,6 +298,14 @@ pub(crate) fn integrate_nested<const N: usize>(
         }
         (v, e)
     }
+    if breaks.iter().any(|b| b.is_nan()) {
+        return Integral {
+            value: [f64::NAN; N],
+            error: [f64::NAN; N],
+            evaluations: 0,
+            converged: false,
+        };
+    }
     let mut panels: Vec<NestedPanel<N>> = Vec::new();
     for w in breaks.windows(2) {
         if w[1] > w[0] {
@@ -309,13 +318,13 @@ pub(crate) fn integrate_nested<const N: usize>(
     loop {
         let tol = tolerance(&value);
         let done = (0..N).all(|i| error[i] <= tol[i]);
-        if done || panels.len() >= max_panels || panels.is_empty() {
+        if done || panels.is_empty() {
             let (value, error) = sums(&panels);
             return Integral {
                 value,
                 error,
                 evaluations,
-                converged: done || panels.is_empty(),
+                converged: true,
             };
         }
         let score = |p: &NestedPanel<N>| {
@@ -346,8 +355,8 @@ pub(crate) fn integrate_nested<const N: usize>(
             }
         } else {
             let m = 0.5 * (old.a + old.b);
-            if !(m > old.a && m < old.b) {
-                // Cannot be split further in f64: keep it and stop, honestly unconverged.
+            if panels.len() >= max_panels || !(m > old.a && m < old.b) {
+                // Out of panels, or it cannot be split further in f64: stop, honestly unconverged.
                 let (value, error) = sums(&panels);
                 return Integral {
                     value,
@@ -586,9 +595,15 @@ mod tests {
             r.value[0],
             r.error[0]
         );
-        // Empty and degenerate intervals.
+        // Empty and degenerate intervals; a NaN bound.
         let r = integrate_adaptive_nested(|x| [x], 2.0, 2.0, 0.0, 1e-6, 10);
         assert_eq!((r.value, r.evaluations, r.converged), ([0.0], 0, true));
+        let r = integrate_adaptive_nested(|x| [x], f64::NAN, 2.0, 0.0, 1e-6, 10);
+        assert!(r.value[0].is_nan() && !r.converged);
+        // One panel allowed: it is still extended to P15 before giving up.
+        let r = integrate_adaptive_nested(|x| [(-x).exp()], 0.0, 1.0, 0.0, 1e-9, 1);
+        assert_eq!(r.evaluations, 15);
+        assert!(r.converged);
     }
 
     #[test]

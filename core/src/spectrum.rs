@@ -393,6 +393,22 @@ pub fn spectrum_to_rec709(s: &Spectrum) -> [f64; 3] {
     xyz_to_rec709(spectrum_to_xyz(s))
 }
 
+/// A bound on the error of each linear Rec.709 channel given absolute
+/// errors `e` (≥ 0) of X, Y, Z: `|XYZ_TO_REC709|·e`, entry by entry (the
+/// matrix has negative entries, so converting `e` itself is no bound).
+pub fn xyz_error_to_rec709(e: [f64; 3]) -> [f64; 3] {
+    std::array::from_fn(|c| (0..3).map(|j| XYZ_TO_REC709[c][j].abs() * e[j]).sum())
+}
+
+/// A bound on the error of each linear Rec.709 channel of a spectrum whose
+/// samples err by at most `|e|`: [`xyz_error_to_rec709`] of the XYZ of `|e|`
+/// (the colour-matching functions are non-negative, so that bounds the XYZ
+/// errors; the Rec.709 ones have negative lobes, so `spectrum_to_rec709(|e|)`
+/// would not bound the channels).
+pub fn spectral_error_to_rec709(e: &Spectrum) -> [f64; 3] {
+    xyz_error_to_rec709(spectrum_to_xyz(&e.map(f64::abs)))
+}
+
 /// Linear spectral upsampling of a linear Rec.709 colour.
 ///
 /// Returns the minimum-norm spectrum (Euclidean norm over the 81 samples) whose
@@ -478,6 +494,46 @@ mod tests {
     fn chromaticity(xyz: [f64; 3]) -> [f64; 2] {
         let t = xyz[0] + xyz[1] + xyz[2];
         [xyz[0] / t, xyz[1] / t]
+    }
+
+    /// `spectral_error_to_rec709(e)` bounds the Rec.709 channels of every
+    /// error spectrum within `±|e|`, including the worst sign pattern of
+    /// each channel (the sign of its colour-matching function), where
+    /// `spectrum_to_rec709(|e|)` falls short.
+    #[test]
+    fn spectral_error_bound_covers_every_sign_pattern() {
+        let mut state = 0x9E37_79B9_7F4A_7C15u64;
+        let mut rnd = || {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            (state >> 11) as f64 / (1u64 << 53) as f64
+        };
+        let mut naive_short = false;
+        for _ in 0..200 {
+            let e: Spectrum = std::array::from_fn(|_| rnd());
+            let bound = spectral_error_to_rec709(&e);
+            let naive = spectrum_to_rec709(&e);
+            for c in 0..3 {
+                // The worst case for channel c: each sample's sign that of the channel's weight.
+                let unit = |i: usize| {
+                    let mut u = [0.0; SPECTRAL_SAMPLES];
+                    u[i] = 1.0;
+                    spectrum_to_rec709(&u)[c]
+                };
+                let worst: f64 = (0..SPECTRAL_SAMPLES).map(|i| e[i] * unit(i).abs()).sum();
+                assert!(worst <= bound[c] * (1.0 + 1e-12), "channel {c}: {worst} > {}", bound[c]);
+                naive_short |= naive[c].abs() < worst;
+            }
+            for _ in 0..20 {
+                let signed: Spectrum = std::array::from_fn(|i| e[i] * (2.0 * rnd() - 1.0));
+                let got = spectrum_to_rec709(&signed);
+                for c in 0..3 {
+                    assert!(got[c].abs() <= bound[c] * (1.0 + 1e-12));
+                }
+            }
+        }
+        assert!(naive_short, "converting |e| directly should fall short somewhere");
     }
 
     #[test]

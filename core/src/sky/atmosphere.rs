@@ -1406,12 +1406,7 @@ impl crate::sky::texture::SkyModel for AtmosphereParams {
         let eval = move |d: DVec3, tol: f64| {
             let ([r, m], [er, em], _) = self.scattering_parts_xyz(d, tol, &table);
             let (p_r, p_m) = self.phases(d);
-            // |M|·|e| bounds the Rec.709 error of an XYZ error e.
-            let abs_rgb = |e: [f64; 3]| {
-                let m = &crate::spectrum::XYZ_TO_REC709;
-                std::array::from_fn::<f64, 3, _>(|c| (0..3).map(|j| m[c][j].abs() * e[j]).sum())
-            };
-            let (ar, am) = (abs_rgb(er), abs_rgb(em));
+            let (ar, am) = (crate::spectrum::xyz_error_to_rec709(er), crate::spectrum::xyz_error_to_rec709(em));
             let err = (0..3).fold(0.0f64, |x, c| x.max(p_r * ar[c] + p_m * am[c]));
             (
                 vec![
@@ -1515,9 +1510,9 @@ impl crate::sky::texture::SkyModel for AtmosphereWithMultipleScattering {
         let with_ambient = move |d: DVec3, tol: f64| {
             let (mut parts, e) = eval(d, tol);
             let (a, ae) = self.ambient_term(d, tol);
-            let ae = crate::spectrum::spectrum_to_rec709(&ae.map(f64::abs));
+            let ae = crate::spectrum::spectral_error_to_rec709(&ae);
             parts.push((None, crate::spectrum::spectrum_to_rec709(&a)));
-            (parts, e + ae.iter().fold(0.0f64, |m, x| m.max(x.abs())))
+            (parts, e + ae.iter().fold(0.0f64, |m, x| m.max(*x)))
         };
         Ok(crate::sky::texture::RgbEvaluator {
             eval: Box::new(with_ambient),

@@ -312,11 +312,14 @@ impl ColourTable {
     }
 
     /// The six sums at columns `c_r`, `c_o` (m, ≥ 0): from the table inside
-    /// it, else (or for NaN) summed exactly. Returns whether the table served.
+    /// it, else summed exactly (negative columns taken as 0); NaN for a NaN
+    /// column. Returns whether the table served.
     #[inline]
     pub fn lookup(&self, c_r: f64, c_o: f64) -> ([f64; OUTPUTS], bool) {
         if c_r >= 0.0 && c_r <= self.max[0] && c_o >= 0.0 && c_o <= self.max[1] {
             (self.interpolate(c_r, c_o), true)
+        } else if c_r.is_nan() || c_o.is_nan() {
+            ([f64::NAN; OUTPUTS], false)
         } else {
             (self.sums.sums(c_r.max(0.0), c_o.max(0.0)), false)
         }
@@ -429,6 +432,10 @@ mod tests {
                 t.relative_error()
             );
             assert!(worst <= t.relative_error(), "{worst} > {}", t.relative_error());
+            // Outside the table: summed exactly; a NaN column stays NaN.
+            let (beyond, served) = t.lookup(3e6, 0.0);
+            assert!(!served && beyond == t.sums.sums(3e6, 0.0));
+            assert!(t.lookup(f64::NAN, 1.0).0.iter().all(|x| x.is_nan()));
         }
     }
 }

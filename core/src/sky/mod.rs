@@ -148,7 +148,7 @@ pub fn render_world_with(
                 plan.computed(
                     "pixels fitted along their row",
                     format!(
-                        "{} pixels in grid cells that reached the pixel size still missing the tolerance: along each row (one view zenith angle) quadratic in the azimuth on {} pieces, each checked against the model at two points ({} sky evaluations; {} pieces missed and were halved or evaluated per pixel)",
+                        "{} pixels in grid cells that reached the pixel size, or at most two pixel rows tall, still missing the tolerance: along each row (one view zenith angle) quadratic in the azimuth on {} pieces, each checked against the model at two points ({} sky evaluations; {} pieces missed and were halved or evaluated per pixel)",
                         tex.row_fitted_pixels, tex.row_fits, tex.row_fit_evaluations, tex.row_fits_missed
                     ),
                 );
@@ -157,7 +157,7 @@ pub fn render_world_with(
                 plan.computed(
                     "pixels evaluated directly",
                     format!(
-                        "{} pixels in {} grid cells that reached the pixel size still missing the tolerance (a step in the sky), where no fit along the row was tried (runs under 8 pixels) or met it, are evaluated at their centres",
+                        "{} pixels in {} grid cells that reached the pixel size, or at most two pixel rows tall, still missing the tolerance (a step in the sky), where no fit along the row was tried (runs under 8 pixels) or met it, are evaluated at their centres",
                         tex.direct_pixels, tex.pixel_limited_cells
                     ),
                 );

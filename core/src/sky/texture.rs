@@ -743,20 +743,15 @@ fn split_along_theta(c: &Cell, m: Misses, tol: f64, limits: &Limits) -> bool {
 }
 
 /// Whether a cell with misses `m` that is not split along θ
-/// ([`split_along_theta`]) is split along Δφ: it misses there, or only at
-/// the centre and cannot be split along θ, is not at the pixel limit in Δφ,
-/// and is more than [`ROW_FIT_MAX_HEIGHT_PX`] pixel rows tall (a thinner one
-/// holds at most that many rows, and fitting each of them along Δφ at
-/// resampling costs fewer model calls than refining the cell's 2–3 lines
-/// of grid points — half of which, in a cell half a pixel tall, no pixel
-/// row would ever read).
+/// ([`split_along_theta`]) is split along Δφ: it misses there, is not at the
+/// pixel limit in Δφ, and is more than [`ROW_FIT_MAX_HEIGHT_PX`] pixel rows
+/// tall (a thinner one holds at most that many rows, and fitting each of
+/// them along Δφ at resampling costs fewer model calls than refining the
+/// cell's 2–3 lines of grid points — half of which, in a cell half a pixel
+/// tall, no pixel row would ever read). A thin cell that misses, in any
+/// direction, becomes a pixel-limited leaf whose rows are fitted.
 fn split_along_phi(c: &Cell, m: Misses, tol: f64, limits: &Limits) -> bool {
-    let (along_u, along_v, centre) = m;
-    let cross = centre > tol && along_u <= tol && along_v <= tol;
-    !split_along_theta(c, m, tol, limits)
-        && c.su > limits.row_su
-        && c.sv > limits.min_sv
-        && (along_v > tol || (cross && c.su <= limits.min_su))
+    !split_along_theta(c, m, tol, limits) && c.su > limits.row_su && c.sv > limits.min_sv && m.1 > tol
 }
 
 impl Half {
@@ -1401,9 +1396,7 @@ pub fn build_world_texture(model: &dyn SkyModel, settings: &TextureSettings) -> 
 }
 
 fn sky_rgb(parts: Vec<(Option<PhaseFunction>, Spectrum)>, e: &Spectrum) -> PointEval {
-    let err = spectrum::spectrum_to_rec709(&e.map(f64::abs))
-        .iter()
-        .fold(0.0f64, |a, b| a.max(b.abs()));
+    let err = spectrum::spectral_error_to_rec709(e).iter().fold(0.0f64, |a, b| a.max(*b));
     (parts.into_iter().map(|(p, l)| (p, spectrum::spectrum_to_rec709(&l))).collect(), err)
 }
 
