@@ -3,13 +3,18 @@ atmosphere, each result compared pixel by pixel with a reference rendered at
 tolerance 1e-6 (same model, same size): largest luminance relative error and
 largest chromaticity difference Δu′v′, next to the wall time.
 
-    python scripts/bench_sky_sweep.py [--width 2048] [--elevations 2,20,60]
+    python scripts/bench_sky_sweep.py [--width 2048] [--elevations 2,20,60] [--json OUT]
+
+With ``--json`` the rows are also written for ``scripts/plot_error_vs_time.py``
+(one series per sun elevation, the largest luminance error as the error).
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import time
+from pathlib import Path
 
 import numpy as np
 import tyndall
@@ -32,7 +37,9 @@ def main() -> None:
     ap.add_argument("--width", type=int, default=2048)
     ap.add_argument("--elevations", default="2,20,60")
     ap.add_argument("--tolerances", default="1e-1,3e-2,1e-2,3e-3,1e-3,3e-4")
+    ap.add_argument("--json", default="", help="also write the rows to this JSON file")
     args = ap.parse_args()
+    rows: list[dict[str, object]] = []
     size = f"{args.width}×{args.width // 2}"
     print(f"Sky {size}, layered atmosphere, against tolerance 1e-6 (same model)\n")
     print("| sun elevation | tolerance | wall time, s | max luminance rel. error | max Δu′v′ |")
@@ -53,6 +60,11 @@ def main() -> None:
             lum_err = np.max(np.abs(luminance(img) - lum_ref)[mask] / lum_ref[mask])
             duv = np.max(np.linalg.norm(uv(img) - uv(ref), axis=-1)[mask])
             print(f"| {elev:g}° | {tol:g} | {best:.3f} | {lum_err:.2e} | {duv:.2e} |")
+            row = {"renderer": f"sun {elev:g}°", "setting": tol, "seconds": best, "rel_rmse": float(lum_err)}
+            rows.append(dict(row, duv=float(duv)))
+    if args.json:
+        label = "largest luminance error vs tolerance 1e-6, %"
+        Path(args.json).write_text(json.dumps({"scene": f"sky {size}", "error_label": label, "rows": rows}, indent=1))
 
 
 if __name__ == "__main__":

@@ -5,8 +5,9 @@ tests/data/cycles (relative RMSE over the image).
     python scripts/bench_stage_vs_cycles.py SCENE_NAME --bpy-python /path/to/python-with-bpy
     python scripts/bench_stage_vs_cycles.py NAME --scene S.json --reference S.exr ...
 
-Writes a markdown table to stdout. Timings are wall times on this machine;
-Cycles' include scene building inside bpy (its own log gives render time only).
+Writes a markdown table to stdout, and with ``--json OUT`` the same rows as JSON
+for ``scripts/plot_error_vs_time.py``. Tyndall's timings are wall times of
+``tyndall.render`` (best of 3); Cycles' are the render time from its own log.
 
 A second error column leaves out the pixels holding a point light's image
 (from Tyndall's report, ``stats.light_images``). There Cycles 5.0.1 loses light:
@@ -67,7 +68,9 @@ def main() -> None:
     ap.add_argument("--tolerances", default="1e-1,1e-2,1e-3,1e-4,1e-6")
     ap.add_argument("--scene", default="", help="scene JSON (default: tests/data/cycles/NAME.json)")
     ap.add_argument("--reference", default="", help="converged Cycles EXR (default: tests/data/cycles/NAME.exr)")
+    ap.add_argument("--json", default="", help="also write the rows to this JSON file")
     args = ap.parse_args()
+    rows: list[dict[str, object]] = []
     scene_path = Path(args.scene) if args.scene else DATA / f"{args.name}.json"
     ref = read_rgb(Path(args.reference) if args.reference else DATA / f"{args.name}.exr")
     scene = json.loads(scene_path.read_text())
@@ -86,8 +89,10 @@ def main() -> None:
         if keep is None:
             keep = light_pixel_mask(report["stats"].get("light_images", []), *ref.shape[:2])
         img = layers["inscatter"].astype(np.float64)
-        errs = f"{rel_rmse(img, ref):.3%} | {rel_rmse(img, ref, keep):.3%}"
-        print(f"| Tyndall | tolerance {tol:g} | {best:.3f} | {errs} |")
+        err, err_keep = rel_rmse(img, ref), rel_rmse(img, ref, keep)
+        row = {"renderer": "Tyndall", "setting": tol, "seconds": best, "rel_rmse": err}
+        rows.append(dict(row, rel_rmse_without_light=err_keep))
+        print(f"| Tyndall | tolerance {tol:g} | {best:.3f} | {err:.3%} | {err_keep:.3%} |")
     if args.bpy_python:
         for n in [int(x) for x in args.samples.split(",")]:
             with tempfile.TemporaryDirectory() as tmp:
@@ -97,8 +102,19 @@ def main() -> None:
                 subprocess.run(cmd, check=True, capture_output=True)
                 render_s = json.loads(log.read_text()).get("render_seconds", float("nan"))
                 img = read_rgb(out)
-                errs = f"{rel_rmse(img, ref):.3%} | {rel_rmse(img, ref, keep):.3%}"
-                print(f"| Cycles CPU | {n} samples | {render_s:.3f} | {errs} |")
+                err, err_keep = rel_rmse(img, ref), rel_rmse(img, ref, keep)
+                rows.append(
+                    {
+                        "renderer": "Cycles CPU",
+                        "setting": n,
+                        "seconds": render_s,
+                        "rel_rmse": err,
+                        "rel_rmse_without_light": err_keep,
+                    }
+                )
+                print(f"| Cycles CPU | {n} samples | {render_s:.3f} | {err:.3%} | {err_keep:.3%} |")
+    if args.json:
+        Path(args.json).write_text(json.dumps({"scene": args.name, "rows": rows}, indent=1))
 
 
 if __name__ == "__main__":
