@@ -312,6 +312,15 @@ pub(crate) fn integrate_nested<const N: usize>(
             panels.push(NestedPanel::new(f, w[0], w[1]));
         }
     }
+    let finish = |panels: &[NestedPanel<N>], evaluations: usize, converged: bool| {
+        let (value, error) = sums(panels);
+        Integral {
+            value,
+            error,
+            evaluations,
+            converged,
+        }
+    };
     let mut evaluations = 7 * panels.len();
     let (mut value, mut error) = sums(&panels);
     let mut since_exact = 0;
@@ -319,13 +328,7 @@ pub(crate) fn integrate_nested<const N: usize>(
         let tol = tolerance(&value);
         let done = (0..N).all(|i| error[i] <= tol[i]);
         if done || panels.is_empty() {
-            let (value, error) = sums(&panels);
-            return Integral {
-                value,
-                error,
-                evaluations,
-                converged: true,
-            };
+            return finish(&panels, evaluations, true);
         }
         let score = |p: &NestedPanel<N>| {
             (0..N).fold(0.0_f64, |m, i| {
@@ -357,13 +360,7 @@ pub(crate) fn integrate_nested<const N: usize>(
             let m = 0.5 * (old.a + old.b);
             if panels.len() >= max_panels || !(m > old.a && m < old.b) {
                 // Out of panels, or it cannot be split further in f64: stop, honestly unconverged.
-                let (value, error) = sums(&panels);
-                return Integral {
-                    value,
-                    error,
-                    evaluations,
-                    converged: false,
-                };
+                return finish(&panels, evaluations, false);
             }
             panels.swap_remove(worst);
             let p1 = NestedPanel::new(f, old.a, m);

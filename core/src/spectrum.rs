@@ -502,13 +502,7 @@ mod tests {
     /// `spectrum_to_rec709(|e|)` falls short.
     #[test]
     fn spectral_error_bound_covers_every_sign_pattern() {
-        let mut state = 0x9E37_79B9_7F4A_7C15u64;
-        let mut rnd = || {
-            state ^= state << 13;
-            state ^= state >> 7;
-            state ^= state << 17;
-            (state >> 11) as f64 / (1u64 << 53) as f64
-        };
+        let mut rnd = crate::test_support::uniform(0x9E37_79B9_7F4A_7C15);
         let mut naive_short = false;
         for _ in 0..200 {
             let e: Spectrum = std::array::from_fn(|_| rnd());

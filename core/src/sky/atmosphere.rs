@@ -2322,13 +2322,7 @@ mod tests {
         // the direct shadow test, for observers at 0, 20 and 80 km with the sun
         // below their horizon; where ℓ ≤ 0 the sky must be exactly zero, and
         // positive where ℓ is clearly positive.
-        let mut rng = 0x2545_f491_4f6c_dd1d_u64;
-        let mut uniform = || {
-            rng ^= rng << 13;
-            rng ^= rng >> 7;
-            rng ^= rng << 17;
-            (rng >> 11) as f64 / (1u64 << 53) as f64
-        };
+        let mut uniform = crate::test_support::uniform(0x2545_f491_4f6c_dd1d);
         let (mut dark, mut lit, mut from_above, mut dark_from_above, mut lit_from_above) = (0, 0, 0, 0, 0);
         // The last observer is above the atmosphere's top (60 km): its view
         // rays enter the atmosphere at t_in > 0, between the limb of the top

@@ -410,13 +410,7 @@ mod tests {
             let t = ColourTable::build(sums_of(&p), [1.2e6, 1.5e6], target).expect("fits");
             assert!(t.relative_error() <= target, "{} > {target}", t.relative_error());
             let mut worst = 0.0f64;
-            let mut state = 0x2545F4914F6CDD1Du64;
-            let mut rnd = || {
-                state ^= state << 13;
-                state ^= state >> 7;
-                state ^= state << 17;
-                (state >> 11) as f64 / (1u64 << 53) as f64
-            };
+            let mut rnd = crate::test_support::uniform(0x2545F4914F6CDD1D);
             for _ in 0..20_000 {
                 let (c_r, c_o) = (1.2e6 * rnd(), 1.5e6 * rnd());
                 let (got, served) = t.lookup(c_r, c_o);
