@@ -496,29 +496,19 @@ pub struct ColumnResult {
     pub evaluations: usize,
 }
 
-/// [`crate::numeric::integrate_nested`]: (values, summed error estimates, evaluations).
-fn integrate_pieces<const N: usize>(
-    f: &mut impl FnMut(f64) -> [f64; N],
-    breaks: &[f64],
-    tolerance: impl Fn(&[f64; N]) -> [f64; N],
-    max_panels: usize,
-) -> ([f64; N], [f64; N], usize) {
-    let r = integrate_nested(f, breaks, tolerance, max_panels);
-    (r.value, r.error, r.evaluations)
-}
-
 /// Columns over `[t0, t1]` of `ray`, each species to `rel_tol` of its own total.
 fn columns_relative(ray: &Ray, t0: f64, t1: f64, rel_tol: f64) -> ([f64; 3], [f64; 3], usize) {
     if !longer(t0, t1) {
         return ([0.0; 3], [0.0; 3], 0);
     }
     let (cuts, n) = ray.cuts(t0, t1);
-    let (v, mut e, evals) = integrate_pieces(
+    let r = integrate_nested(
         &mut |t| densities(ray.height_radius(t).0),
         &cuts[..n],
         |v| v.map(|x| rel_tol * x.abs()),
         4000,
     );
+    let (v, mut e, evals) = (r.value, r.error, r.evaluations);
     // A panel estimate can be exactly 0 on a nearly constant piece; add a rounding floor.
     for k in 0..3 {
         e[k] += 64.0 * f64::EPSILON * v[k].abs();
@@ -917,8 +907,9 @@ impl AtmosphereParams {
     /// sky). `rel_tol` (clamped to 1e-13…0.1, NaN → 1e-4) bounds each sample's
     /// estimated error by `rel_tol · max(|L(λ)|, 10⁻² max_λ |L|)`; the
     /// estimate is the summed `|K7 − G3|` or `|P15 − K7|` of the panels
-    /// (conservative for these smooth pieces) plus the inner columns' effect. At most 2 000 panels are used;
-    /// the estimate stays honest if that budget runs out. `sun_intensity`
+    /// (conservative for these smooth pieces) plus the inner columns'
+    /// effect. At most 2 000 panels are used; the estimate stays honest if
+    /// that budget runs out. `sun_intensity`
     /// does not apply (Blender's convention). Parameters are assumed valid
     /// ([`Self::validate`]).
     pub fn sky_spectral_radiance(&self, view_dir: DVec3, rel_tol: f64) -> (Spectrum, Spectrum, usize) {
@@ -1013,7 +1004,6 @@ impl AtmosphereParams {
     ) -> ([f64; 2 * SPECTRAL_SAMPLES], [f64; 2 * SPECTRAL_SAMPLES], usize) {
         const N: usize = SPECTRAL_SAMPLES;
         const M: usize = 2 * N;
-        let n = N;
         let res = self.resolved();
         let e0 = solar_spectral_irradiance();
         // Per wavelength (the first N of M entries are used, the layout of
@@ -1045,10 +1035,10 @@ impl AtmosphereParams {
         let tau = sanitize_tol(rel_tol, 1e-4);
         let (p_r, p_m) = self.phases(view_dir);
         let tolerance = |v: &[f64; M]| -> [f64; M] {
-            let l: [f64; M] = std::array::from_fn(|i| if i < n { p_r * v[i] + p_m * v[n + i] } else { 0.0 });
+            let l: Spectrum = std::array::from_fn(|i| p_r * v[i] + p_m * v[N + i]);
             let floor = 1e-2 * l.iter().fold(0.0f64, |m, x| m.max(x.abs()));
             std::array::from_fn(|o| {
-                let (i, p) = if o < n { (o, p_r) } else { (o - n, p_m) };
+                let (i, p) = if o < N { (o, p_r) } else { (o - N, p_m) };
                 tau / 1.02 * v[o].abs().max(1e-2 * l[i].abs().max(floor) / p)
             })
         };
@@ -1063,10 +1053,10 @@ impl AtmosphereParams {
         };
         // The columns' error bounds, as optical depth: L·max δτ bounds |δL|
         // (|e^{−τ−δτ} − e^{−τ}| ≤ e^{−τ}·δτ), plus rounding.
-        for i in 0..n {
+        for i in 0..N {
             let dtau = sigma[0][i] * column_error[0] + sigma[1][i] * column_error[1] + sigma[2][i] * column_error[2];
             for k in 0..2 {
-                error[k * n + i] += value[k * n + i].abs() * (dtau + 64.0 * f64::EPSILON);
+                error[k * N + i] += value[k * N + i].abs() * (dtau + 64.0 * f64::EPSILON);
             }
         }
         (value, error, evaluations)
@@ -1142,7 +1132,7 @@ impl AtmosphereParams {
     /// spectral and the tabulated colour paths: the ray's part inside the
     /// atmosphere, its cut points (ends, shadow edges, ozone-kink crossings
     /// of the view and the sun rays, lowest point) and the globally adaptive
-    /// quadrature over them ([`integrate_pieces`], at most 2 000 panels)
+    /// quadrature over them ([`integrate_nested`], at most 2 000 panels)
     /// until each output's error is within `tolerance(values)`.
     /// `None` for a bad direction; zeros where the ray misses the atmosphere.
     fn integrate_view_ray<const M: usize>(
@@ -1199,11 +1189,11 @@ impl AtmosphereParams {
             }
             shade([cs[0] + cv[0], cs[1] + cv[1], cs[2] + cv[2]], rho_r, rho_m)
         };
-        let (value, error, evaluations) = integrate_pieces(&mut f, &breaks, tolerance, 2000);
+        let r = integrate_nested(&mut f, &breaks, tolerance, 2000);
         Some(ViewIntegral {
-            value,
-            error,
-            evaluations,
+            value: r.value,
+            error: r.error,
+            evaluations: r.evaluations,
             column_error,
         })
     }
@@ -1321,7 +1311,8 @@ impl AtmosphereParams {
                 (-tau).exp() * (res.scat_r[i] * rho_r + res.scat_m * rho_m) * ambient[i]
             })
         };
-        let (value, mut error, evaluations) = integrate_pieces(&mut f, &cuts[..n], |v| relative_with_floor(v, tol), 2000);
+        let r = integrate_nested(&mut f, &cuts[..n], |v| relative_with_floor(v, tol), 2000);
+        let (value, mut error, evaluations) = (r.value, r.error, r.evaluations);
         for i in 0..SPECTRAL_SAMPLES {
             error[i] += value[i].abs() * (dtau_max[i] + 64.0 * f64::EPSILON);
         }

@@ -90,8 +90,7 @@ impl ColourSums {
         }
     }
 
-    /// The six sums and, with `derivatives`, their derivatives in C_R, C_O
-    /// and both, at columns (C_R, C_O) m, exactly (81 exponentials).
+    /// The six sums at columns (C_R, C_O), m, exactly (81 exponentials).
     fn sums(&self, c_r: f64, c_o: f64) -> [f64; OUTPUTS] {
         let mut out = [0.0; OUTPUTS];
         for i in 0..SPECTRAL_SAMPLES {
@@ -102,9 +101,7 @@ impl ColourSums {
         }
         out
     }
-}
 
-impl ColourSums {
     /// The exponential factors per wavelength at the columns
     /// `(k + offset) · step` of each axis, `k < count`: one exponential per
     /// point and wavelength, so that a grid of sums needs only products.
@@ -162,12 +159,12 @@ impl ColourTable {
     /// (relative, > 0). `None` if that takes more than [`MAX_NODES`] nodes.
     ///
     /// A coarse table (65 × 9 nodes) first measures each axis's error at
-    /// its edge midpoints; a cubic Hermite interpolant's error falls as the
-    /// spacing⁴, so the spacing of each axis is halved until its predicted
-    /// error is a quarter of the target (the bound is twice the cell-centre
-    /// error, which is about the sum of the two axes'). The table of that
-    /// size is built and measured; should it still miss, the worse axis is
-    /// halved again.
+    /// its edge midpoints. A cubic Hermite interpolant's error falls as the
+    /// spacing⁴, and the charged bound is twice the cell-centre error, about
+    /// the sum of the two axes', so the node counts chosen are the fewest
+    /// (halving each axis's spacing k times) whose predicted bound is within
+    /// 0.8 × the target. The table of that size is built and measured;
+    /// should it still miss, the worse axis is halved again.
     pub fn build(sums: ColourSums, max_columns: [f64; 2], target_error: f64) -> Option<ColourTable> {
         let absent: [bool; OUTPUTS] = std::array::from_fn(|o| sums.weights[o].iter().all(|w| *w == 0.0));
         // An axis whose species is absent is constant: two nodes suffice.

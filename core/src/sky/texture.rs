@@ -118,8 +118,8 @@
 //! and ozone columns, exact in the spectral sense (the sum commutes with the
 //! integral) up to the table's measured interpolation error, ~1e-7 relative.
 //! At 2048 × 1024, tolerance 1e-3, that took the sky stage at 60° from
-//! 37–52 to ≈ 33 ms and at −4° from 232–251 to ≈ 160 ms (before the nested
-//! quadrature and the row limit below). Other models' spectra are
+//! 37–51 to 33–43 ms and at −4° from 232–251 to 158–164 ms (before the
+//! nested quadrature and the row limit below). Other models' spectra are
 //! converted point by point.
 //!
 //! The largest difference at the check points over the final cells is the
@@ -145,10 +145,6 @@ use glam::DVec3;
 use rayon::prelude::*;
 use std::collections::HashMap;
 use std::f64::consts::PI;
-
-/// Phase-free spectral components with their phase functions, and the error estimate
-/// ([`SkyModel::sky_components`]).
-pub type SkyComponents = (Vec<(Option<PhaseFunction>, Spectrum)>, Spectrum);
 
 /// Phase-free components in linear Rec.709 with their phase functions, and
 /// the largest absolute error estimate over the channels of their
@@ -2376,7 +2372,7 @@ mod tests {
             let (path, decision) = decide_colour(&atm, tol, ColourPath::Auto);
             let path = path.expect("the atmosphere has a Rec.709 path");
             assert_eq!(decision.path, "xyz-table");
-            // 20 zenith angles (finer near the horizon, and below it) × 9 azimuths.
+            // 24 zenith angles (finer near the horizon, and below it) × 9 azimuths.
             let mut dirs = Vec::new();
             for k in 0..24 {
                 let theta = if k < 10 {
