@@ -1355,32 +1355,81 @@ fn render_channels<const C: usize>(scene: &Scene, report: &mut Report, progress:
     if filter.radius() > 0.0 {
         let reach = filter.radius().ceil() as isize;
         let half_var = 0.5 * filter.variance();
-        // Centre samples of a ring `reach` pixels wide around the image, so the
-        // Laplacian and the silhouette test work on the border pixels too
-        // (Cycles' filter reaches outside the frame as well).
-        let ring: std::collections::HashMap<(isize, isize), CentreSample> = {
-            let (wi, hi) = (w as isize, h as isize);
-            let coords: Vec<(isize, isize)> = (-reach..hi + reach)
-                .flat_map(|y| (-reach..wi + reach).map(move |x| (x, y)))
-                .filter(|&(x, y)| x < 0 || y < 0 || x >= wi || y >= hi)
-                .collect();
-            coords
-                .into_par_iter()
-                .map(|(x, y)| {
+        // Centre samples of the image padded by a ring `reach` pixels wide, so
+        // the Laplacian and the silhouette test work on the border pixels too
+        // (Cycles' filter reaches outside the frame as well). The ring is traced here.
+        let r = reach as usize;
+        let (pw, ph) = (w + 2 * r, h + 2 * r);
+        let padded: Vec<CentreSample> = (0..pw * ph)
+            .into_par_iter()
+            .map(|j| {
+                let (x, y) = ((j % pw) as isize - reach, (j / pw) as isize - reach);
+                if x >= 0 && y >= 0 && (x as usize) < w && (y as usize) < h {
+                    let i = y as usize * w + x as usize;
+                    (inscatter[i], transmittance[i], surface[i])
+                } else {
                     let s = sample(x as f64 + 0.5, y as f64 + 0.5);
-                    ((x, y), (s.l.map(|v| v as f32), s.t.map(|v| v.clamp(0.0, 1.0) as f32), s.surface))
-                })
-                .collect()
-        };
+                    (s.l.map(|v| v as f32), s.t.map(|v| v.clamp(0.0, 1.0) as f32), s.surface)
+                }
+            })
+            .collect();
         let at = |x: isize, y: isize| -> CentreSample {
-            if x >= 0 && y >= 0 && (x as usize) < w && (y as usize) < h {
-                let j = y as usize * w + x as usize;
-                (inscatter[j], transmittance[j], surface[j])
+            let (px, py) = (x + reach, y + reach);
+            if px >= 0 && py >= 0 && (px as usize) < pw && (py as usize) < ph {
+                padded[py as usize * pw + px as usize]
             } else {
-                ring.get(&(x, y)).copied().unwrap_or(([0.0; 3], [1.0; 3], 0))
+                ([0.0; 3], [1.0; 3], 0)
             }
         };
+        // Running max (or min) over ±r along rows, then along columns, of a
+        // `cols × rows` array: the (2r+1)² window in 2·(2r+1) steps per pixel.
+        fn window_extreme<T: Copy + Send + Sync, F: Fn(T, T) -> T + Copy + Sync>(
+            v: &[T],
+            cols: usize,
+            rows: usize,
+            r: usize,
+            pick: F,
+        ) -> Vec<T> {
+            let mut along_rows = v.to_vec();
+            along_rows.par_chunks_mut(cols).zip(v.par_chunks(cols)).for_each(|(out, row)| {
+                for (x, o) in out.iter_mut().enumerate() {
+                    *o = row[x.saturating_sub(r)..(x + r + 1).min(cols)]
+                        .iter()
+                        .copied()
+                        .reduce(pick)
+                        .unwrap_or(*o);
+                }
+            });
+            let mut both = along_rows.clone();
+            both.par_chunks_mut(cols).enumerate().for_each(|(y, out)| {
+                for k in y.saturating_sub(r)..(y + r + 1).min(rows) {
+                    let row = &along_rows[k * cols..(k + 1) * cols];
+                    for (o, &a) in out.iter_mut().zip(row) {
+                        *o = pick(*o, a);
+                    }
+                }
+            });
+            both
+        }
         let lmax = |i: usize| inscatter[i].iter().fold(0.0f64, |m, v| m.max(f64::from(v.abs())));
+        // The scale errors of the filtered image are measured against: the
+        // brightest centre sample within the filter's window (in the frame).
+        // A dark pixel next to a bright beam is filtered to a tolerance of
+        // what its window sees, not of its own (tiny) value — the
+        // pixel-filter error is an image-space error, and this is the norm in
+        // which it is reported (edge_*).
+        let window_scales: Vec<f64> = window_extreme(&(0..n).map(lmax).collect::<Vec<f64>>(), w, h, r, f64::max);
+        let window_scale = |i: usize| -> f64 { window_scales[i] };
+        // Which surface a centre sample sees, as one key: the mesh, or MAX for
+        // none. Triangles of one mesh are one surface (T and L are continuous
+        // across its creases). A pixel whose window holds one key only has no
+        // silhouette to test.
+        let surface_key = |s: u32| if s == 0 { u32::MAX } else { owner[(s - 1) as usize] };
+        let keys: Vec<u32> = padded.iter().map(|p| surface_key(p.2)).collect();
+        let (key_lo, key_hi) = (
+            window_extreme(&keys, pw, ph, r, u32::min),
+            window_extreme(&keys, pw, ph, r, u32::max),
+        );
         // The filter's second-order effect (σ²/2)·∇²L (and on T), from the
         // discrete Laplacian of the centre samples.
         let lap = |i: usize| -> ([f64; 3], f64) {
@@ -1402,11 +1451,15 @@ fn render_channels<const C: usize>(scene: &Scene, report: &mut Report, progress:
         // horizon needs nothing).
         let silhouette = |i: usize| -> bool {
             let (x, y) = ((i % w) as isize, (i / w) as isize);
+            let j = (y + reach) as usize * pw + (x + reach) as usize;
+            if key_lo[j] == key_hi[j] {
+                return false;
+            }
             let me = at(x, y);
             for dy in -reach..=reach {
                 for dx in -reach..=reach {
                     let other = at(x + dx, y + dy);
-                    if surface_changes(me.2, other.2, &owner)
+                    if surface_key(me.2) != surface_key(other.2)
                         && (0..3).any(|c| {
                             let (a, b) = (f64::from(me.0[c]), f64::from(other.0[c]));
                             (a - b).abs() > tolerance * a.abs().max(b.abs()) || f64::from((me.1[c] - other.1[c]).abs()) > tolerance
@@ -1418,41 +1471,13 @@ fn render_channels<const C: usize>(scene: &Scene, report: &mut Report, progress:
             }
             false
         };
-        // The scale errors of the filtered image are measured against: the
-        // brightest centre sample within the filter's window. A dark pixel next
-        // to a bright beam is filtered to a tolerance of what its window sees,
-        // not of its own (tiny) value — the pixel-filter error is an image-space
-        // error, and this is the norm in which it is reported (edge_*).
-        let window_scale = |i: usize| -> f64 {
-            let (x, y) = ((i % w) as isize, (i / w) as isize);
-            let mut m = 0.0f64;
-            for dy in -reach..=reach {
-                for dx in -reach..=reach {
-                    let (nx, ny) = (x + dx, y + dy);
-                    if nx >= 0 && ny >= 0 && (nx as usize) < w && (ny as usize) < h {
-                        m = m.max(lmax(ny as usize * w + nx as usize));
-                    }
-                }
-            }
-            m
-        };
         // Classify every pixel: either its centre sample stands (with the
         // Laplacian term as its filter error) or it needs the filter integral.
-        let classified: Vec<(Option<usize>, [f64; 3], f64)> = (0..n)
+        let flagged: Vec<bool> = (0..n)
             .into_par_iter()
             .map(|i| {
                 let (el, et) = lap(i);
-                let m = window_scale(i);
-                if et > tolerance || el.iter().any(|e| *e > tolerance * m) || silhouette(i) {
-                    (Some(i), [0.0; 3], 0.0)
-                } else {
-                    let rel = if m > 0.0 {
-                        el.iter().fold(0.0f64, |a, b| a.max(*b)) / m
-                    } else {
-                        0.0
-                    };
-                    (None, el, rel)
-                }
+                et > tolerance || el.iter().any(|e| *e > tolerance * window_scale(i)) || silhouette(i)
             })
             .collect();
         // The Laplacian stencil sees ±1 px around a centre, the filter window
@@ -1460,42 +1485,26 @@ fn render_channels<const C: usize>(scene: &Scene, report: &mut Report, progress:
         // window although its own stencil is flat (e.g. the image of a point
         // light just below a row of zeros), so the flagged set is dilated by one
         // pixel (8-neighbourhood).
-        let flagged: Vec<bool> = classified.iter().map(|c| c.0.is_some()).collect();
-        let classified: Vec<(Option<usize>, [f64; 3], f64)> = classified
-            .into_iter()
-            .enumerate()
-            .map(|(i, c)| {
-                if c.0.is_some() {
-                    return c;
-                }
-                let (x, y) = ((i % w) as isize, (i / w) as isize);
-                for dy in -1..=1isize {
-                    for dx in -1..=1isize {
-                        let (nx, ny) = (x + dx, y + dy);
-                        if nx >= 0 && ny >= 0 && (nx as usize) < w && (ny as usize) < h && flagged[ny as usize * w + nx as usize] {
-                            return (Some(i), [0.0; 3], 0.0);
-                        }
-                    }
-                }
-                c
+        let flagged = window_extreme(&flagged, w, h, 1, |a: bool, b: bool| a | b);
+        let edges: Vec<usize> = (0..n).filter(|&i| flagged[i]).collect();
+        // The other pixels' filter error: the Laplacian term, absolute and
+        // relative to the window's scale (maxima over the image).
+        let lap_error = |i: usize| -> [f64; 3] { if flagged[i] { [0.0; 3] } else { lap(i).0 } };
+        let (lap_abs, lap_rel) = (0..n)
+            .into_par_iter()
+            .map(|i| {
+                let el = lap_error(i).iter().fold(0.0f64, |a, b| a.max(*b));
+                let m = window_scale(i);
+                (el, if m > 0.0 { el / m } else { 0.0 })
             })
-            .collect();
-        let mut lap_abs = 0.0f64;
-        let mut lap_rel = 0.0f64;
-        let mut edges = Vec::new();
-        for (i, (e, el, rel)) in classified.iter().enumerate() {
-            match e {
-                Some(k) => edges.push(*k),
-                None => {
-                    lap_abs = lap_abs.max(el.iter().fold(0.0f64, |a, b| a.max(*b)));
-                    lap_rel = lap_rel.max(*rel);
-                    if want_error {
-                        for c in 0..3 {
-                            error[i][c] += el[c] as f32;
-                        }
-                    }
+            .reduce(|| (0.0, 0.0), |a, b| (a.0.max(b.0), a.1.max(b.1)));
+        if want_error {
+            error.par_iter_mut().enumerate().for_each(|(i, e)| {
+                let el = lap_error(i);
+                for c in 0..3 {
+                    e[c] += el[c] as f32;
                 }
-            }
+            });
         }
         stats.max_abs += lap_abs;
         stats.max_rel += lap_rel;
@@ -1510,17 +1519,27 @@ fn render_channels<const C: usize>(scene: &Scene, report: &mut Report, progress:
         // frame's border pixels (the per-light layers have no samples outside
         // it). The transmittance layers keep their centre samples: the
         // per-light surface transmittance is the view transmittance where no
-        // surface is seen, and must stay equal to it there.
+        // surface is seen, and must stay equal to it there. Where all five
+        // in-scatter samples are 0 the term is 0 in every layer (each light's
+        // in-scatter is ≥ 0 and they sum to at most the total), and the pixel
+        // is skipped.
+        let zero = |j: usize| inscatter[j] == [0.0f32; 3];
         let smooth: Vec<usize> = if half_var <= 0.25 {
-            classified
-                .iter()
-                .enumerate()
-                .filter(|(i, c)| c.0.is_none() && i % w > 0 && i % w + 1 < w && i / w > 0 && i / w + 1 < h)
-                .map(|(i, _)| i)
+            (0..n)
+                .into_par_iter()
+                .filter(|&i| {
+                    !flagged[i]
+                        && i % w > 0
+                        && i % w + 1 < w
+                        && i / w > 0
+                        && i / w + 1 < h
+                        && ![i, i - 1, i + 1, i - w, i + w].iter().all(|&j| zero(j))
+                })
                 .collect()
         } else {
             Vec::new()
         };
+        t = report.time("pixel_filter_classify", t);
         let with_filter_term =
             |img: &[[f32; 3]]| -> Vec<[f32; 3]> { smooth.iter().map(|&i| second_order_filter_term(img, w, i, half_var)).collect() };
         let smooth_inscatter = with_filter_term(&inscatter);
@@ -1808,17 +1827,6 @@ struct EdgeStats {
     max_abs: f64,
     max_rel: f64,
     not_converged: u64,
-}
-
-/// Whether two centre samples see different surfaces (different meshes, or
-/// a mesh and nothing). Triangles of one mesh are one surface: T and L are
-/// continuous across its creases.
-fn surface_changes(a: u32, b: u32, owner: &[u32]) -> bool {
-    match (a, b) {
-        (0, 0) => false,
-        (0, _) | (_, 0) => true,
-        (a, b) => owner[(a - 1) as usize] != owner[(b - 1) as usize],
-    }
 }
 
 /// `acc += wgt · s` for the filtered quantities of a sample.
