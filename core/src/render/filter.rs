@@ -33,7 +33,12 @@
 //! refined, and a constant or linear image is exact. A cell is split into
 //! four while it is *not flat* (its corners' in-scatter spread exceeds ¼ of the tolerance of the brightest window that
 //! holds it, or their transmittance spread ¼ of the tolerance) and some
-//! pixel whose window holds it has not converged; cells stop at 1/32 px,
+//! pixel whose window holds it has not converged. A cell whose corners
+//! differ is still flat where the image is smooth: when the bilinear
+//! interpolant's error, estimated for a child from its parent (the parent's
+//! interpolant against the five points the split added) and for a root cell
+//! from the second differences of the root lattice around it, is within
+//! the same ¼ — that bound then stands for the cell. Cells stop at 1/32 px,
 //! except the cells at a point light's image, which go on to 1/2048 px (the
 //! graded mesh that resolves the 1/r peak). A pixel's error estimate is
 //!
@@ -402,6 +407,44 @@ impl<S: FilterSample> TileLattice<'_, S> {
         if m.is_finite() { m } else { 0.0 }
     }
 
+    /// The bilinear interpolation error of the root cell of side `s` with
+    /// corner (k, l), estimated from the root lattice around it: for a smooth
+    /// image the error on the cell is at most `(|f_xx| + |f_yy|)·s²/8`, and the
+    /// second differences `f(k−s) − 2f(k) + f(k+s)` at its four corners (along
+    /// x and along y) estimate `f_xx·s²` and `f_yy·s²`. The largest over the
+    /// corners is taken, RGB in-scatter and the largest transmittance channel.
+    /// This is the deviation a split would measure (`split`), found on the
+    /// lattice of root points (most of which the neighbouring windows need
+    /// anyway) instead of five new points inside the cell; a step or a
+    /// feature within a few cells shows as a large second difference, and the
+    /// cell is split as before.
+    fn root_deviation(&mut self, k: i64, l: i64, s: i64) -> ([f64; 3], f64) {
+        let mut dev = [0.0f64; 3];
+        let mut t_dev = 0.0f64;
+        for (ck, cl) in [(k, l), (k + s, l), (k, l + s), (k + s, l + s)] {
+            let ids = [
+                self.point(ck, cl),
+                self.point(ck - s, cl),
+                self.point(ck + s, cl),
+                self.point(ck, cl - s),
+                self.point(ck, cl + s),
+            ];
+            let [c, xm, xp, ym, yp] = ids.map(|i| {
+                let p = &self.samples[i as usize];
+                (p.radiance(), p.transmittance())
+            });
+            for ch in 0..3 {
+                let dxx = (xm.0[ch] - 2.0 * c.0[ch] + xp.0[ch]).abs();
+                let dyy = (ym.0[ch] - 2.0 * c.0[ch] + yp.0[ch]).abs();
+                dev[ch] = dev[ch].max((dxx + dyy) / 8.0);
+                let txx = (xm.1[ch] - 2.0 * c.1[ch] + xp.1[ch]).abs();
+                let tyy = (ym.1[ch] - 2.0 * c.1[ch] + yp.1[ch]).abs();
+                t_dev = t_dev.max((txx + tyy) / 8.0);
+            }
+        }
+        (dev, t_dev)
+    }
+
     /// Adds the cell of side `size` with corner (k, l).
     fn new_cell(&mut self, k: i64, l: i64, size: i64, origin: CellOrigin) -> u32 {
         let CellOrigin {
@@ -439,6 +482,12 @@ impl<S: FilterSample> TileLattice<'_, S> {
         // for the cell is then that deviation. A non-finite corner is never
         // flat (it is refined, and its error shows).
         let mut flat = !at_light && small(&spread, t_spread);
+        // A root has no parent: its interpolation error is estimated from the
+        // second differences of the root lattice around it instead.
+        let parent_deviation = match (parent_deviation, root) {
+            (None, None) if !flat && !at_light => Some(self.root_deviation(k, l, size)),
+            (d, _) => d,
+        };
         if !flat
             && !at_light
             && let Some((dev, t_dev)) = parent_deviation
