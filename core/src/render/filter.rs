@@ -46,11 +46,12 @@
 //!   each made to the pixel's estimate (an absolute sum: a step crossing a
 //!   window changes cells with both signs, and a signed sum let pixels stop
 //!   early by cancellation; the bilinear rule has no Euler–Maclaurin
-//!   cancellation to lose), counted twice for a cell with a child that is
-//!   still not flat (a step runs through it: there the error falls as O(h),
-//!   by less than half per split where the window's weight grows towards
-//!   the step, and the last change alone fell short of the error left by up
-//!   to 1.8× on a step along a lattice line), plus
+//!   cancellation to lose); for the cells with a child that is still not
+//!   flat (a step runs through them) their change times [`step_factor`]:
+//!   there the error falls as O(h), by less than half per split where the
+//!   window's weight grows towards the step (the last change alone fell
+//!   short of the error left by up to 1.8× on a step along a lattice line),
+//!   and the rate is measured from round to round, plus
 //! - twice the changes from cells that could not be refined further (finest
 //!   size), carried from the round they were made (across a step the error
 //!   only halves per split), plus
@@ -349,6 +350,9 @@ struct PixelState {
     flat: [f64; 3],
     /// `Σ |change|` of cells whose children cannot be refined, normalised.
     carried: [f64; 3],
+    /// Last round's summed change of the cells a step runs through (see
+    /// [`step_factor`]); 0 before the first round.
+    last_step: [f64; 3],
     /// Cells of its window that may be split next.
     frontier: Vec<u32>,
 }
@@ -675,6 +679,7 @@ impl<S: FilterSample> TileLattice<'_, S> {
                 weight: 0.0,
                 flat: [0.0; 3],
                 carried: [0.0; 3],
+                last_step: [0.0; 3],
                 frontier: Vec::new(),
             };
             for j in 0..px.roots.len() {
@@ -713,6 +718,7 @@ impl<S: FilterSample> TileLattice<'_, S> {
                 let est = px.sum.map(|v| v / px.weight);
                 let mut change = [0.0f64; 3];
                 let mut terminal = [0.0f64; 3];
+                let mut step = [0.0f64; 3];
                 for &r in &px.roots {
                     let Some(cells) = by_root.get(&r) else { continue };
                     for &i in cells {
@@ -745,19 +751,16 @@ impl<S: FilterSample> TileLattice<'_, S> {
                             } else if smooth {
                                 change[ch] += d;
                             } else {
-                                // A child is still not flat: a step runs through
-                                // the cell, where the error falls as O(h) and by
-                                // less than half per split when the window's
-                                // weight grows towards the step (an aligned step
-                                // at tolerance 0.05 fell by 0.64): the change is
-                                // charged twice, as the terminal ones are.
-                                change[ch] += TERMINAL_FACTOR * d;
+                                // A child is still not flat: a step runs through the cell.
+                                step[ch] += d;
                             }
                         }
                     }
                 }
                 let mut err = [0.0f64; 3];
                 for ch in 0..3 {
+                    change[ch] += step_factor(step[ch], px.last_step[ch]) * step[ch];
+                    px.last_step[ch] = step[ch];
                     px.carried[ch] += TERMINAL_FACTOR * terminal[ch];
                     err[ch] = change[ch] + px.carried[ch] + px.flat[ch] / px.weight;
                 }
@@ -779,6 +782,29 @@ impl<S: FilterSample> TileLattice<'_, S> {
             active = still;
         }
         done
+    }
+}
+
+/// The error left after a round of splits through a step, per unit of the
+/// change the round made. Across a step the filter integral converges as
+/// O(h): if each round leaves `ρ` times the previous error, a round that
+/// changed the estimate by `d` left `ρ/(1 − ρ)·d`. `ρ` is ½ where the window
+/// is flat across the split cells, and more where its weight grows towards
+/// the step (at ½ px cells on a step along a lattice line, 0.64: the change
+/// alone was 0.57× the error left). `ρ` is measured as this round's change
+/// over the last one's (both summed over the pixel's cells a step runs
+/// through), and the factor is kept within [1, 4] (4 for `ρ` ≥ 0.8, when the
+/// rounds do not shrink, e.g. as a second step enters the refinement). The
+/// first round has no measurement and takes [`TERMINAL_FACTOR`].
+fn step_factor(this_round: f64, last_round: f64) -> f64 {
+    if last_round <= 0.0 || !last_round.is_finite() {
+        return TERMINAL_FACTOR;
+    }
+    let rho = this_round / last_round;
+    if rho >= 0.8 || !rho.is_finite() {
+        4.0
+    } else {
+        (rho / (1.0 - rho)).clamp(1.0, 4.0)
     }
 }
 
