@@ -1115,6 +1115,20 @@ mod adaptive_tests {
     }
 
     #[test]
+    fn step_factor_extrapolates_the_measured_rate() {
+        // No earlier round: the terminal factor.
+        assert_eq!(step_factor(1.0, 0.0), TERMINAL_FACTOR);
+        // ρ = ½ (the error halves per round): what is left equals the change.
+        assert!((step_factor(0.5, 1.0) - 1.0).abs() < 1e-15);
+        // ρ = 0.64 (the aligned step at ½ px cells): 0.64/0.36.
+        assert!((step_factor(0.64, 1.0) - 0.64 / 0.36).abs() < 1e-12);
+        // Faster than halving is still charged once; no shrinking at all, four times.
+        assert_eq!(step_factor(0.1, 1.0), 1.0);
+        assert_eq!(step_factor(2.0, 1.0), 4.0);
+        assert_eq!(step_factor(f64::NAN, 1.0), 4.0);
+    }
+
+    #[test]
     fn adaptive_lattice_against_brute_force() {
         let bump = |x: f64, y: f64| (-((x - 5.3).powi(2) + (y - 4.1).powi(2)) / 2.0).exp();
         let narrow = |x: f64, y: f64| (-((x - 5.3 - 0.2 * y).powi(2)) / 0.3).exp();
@@ -1123,6 +1137,23 @@ mod adaptive_tests {
             check("constant", &|_, _| 0.7, tol, &[], 1.0);
             check("bump", &bump, tol, &[], 1.0);
             check("narrow beam", &narrow, tol, &[], 1.0);
+            // A line 0.2 px wide (1/e half-width), narrower than the root cells.
+            check(
+                "thin line",
+                &|x: f64, y: f64| (-((x - 5.3 - 0.2 * y).powi(2)) / 0.04).exp(),
+                tol,
+                &[],
+                1.0,
+            );
+            // A gradient steep on the scale of a root cell but smooth: the
+            // root cells' second differences see it.
+            check(
+                "steep ramp",
+                &|x: f64, y: f64| 1.0 / (1.0 + (-(x + 0.3 * y - 6.0) / 0.4).exp()),
+                tol,
+                &[],
+                1.0,
+            );
             check("step", &step, tol, &[], 1.0);
             // A step along a lattice line (the pixel boundary y = 5), just off it.
             check(
