@@ -46,12 +46,11 @@
 //!   each made to the pixel's estimate (an absolute sum: a step crossing a
 //!   window changes cells with both signs, and a signed sum let pixels stop
 //!   early by cancellation; the bilinear rule has no Euler–Maclaurin
-//!   cancellation to lose); for the cells with a child that is still not
-//!   flat (a step runs through them) their change times [`step_factor`]:
-//!   there the error falls as O(h), by less than half per split where the
+//!   cancellation to lose), each times [`step_factor`], the rate at which
+//!   that cell's changes shrink, measured against its parent's: across a
+//!   step the error falls as O(h), by less than half per split where the
 //!   window's weight grows towards the step (the last change alone fell
-//!   short of the error left by up to 1.8× on a step along a lattice line),
-//!   and the rate is measured from round to round, plus
+//!   short of the error left by up to 1.8× on a step along a lattice line), plus
 //! - twice the changes from cells that could not be refined further (finest
 //!   size), carried from the round they were made (across a step the error
 //!   only halves per split), plus
@@ -233,6 +232,8 @@ struct Cell {
     scale: f64,
     /// The root cell it descends from.
     root: u32,
+    /// The cell it was split from (`u32::MAX` for a root).
+    parent: u32,
 }
 
 /// Where a new cell comes from.
@@ -241,6 +242,8 @@ struct CellOrigin {
     scale: f64,
     /// Its root; `None` for a root.
     root: Option<u32>,
+    /// The cell it was split from; `None` for a root.
+    parent: Option<u32>,
     /// For a child: how far the image at the parent's five new points (edge
     /// midpoints, centre) lies from the parent's bilinear interpolant, RGB
     /// in-scatter and the largest transmittance channel.
@@ -350,9 +353,10 @@ struct PixelState {
     flat: [f64; 3],
     /// `Σ |change|` of cells whose children cannot be refined, normalised.
     carried: [f64; 3],
-    /// Last round's summed change of the cells a step runs through (see
-    /// [`step_factor`]); 0 before the first round.
-    last_step: [f64; 3],
+    /// The change each cell split in the last round made to the pixel (not
+    /// those whose children are all final), to measure the rate of the next
+    /// round's splits of its children (see [`step_factor`]).
+    last_changes: HashMap<u32, [f64; 3]>,
     /// Cells of its window that may be split next.
     frontier: Vec<u32>,
 }
@@ -416,20 +420,23 @@ impl<S: FilterSample> TileLattice<'_, S> {
     }
 
     /// The bilinear interpolation error of the root cell of side `s` with
-    /// corner (k, l), estimated from the root lattice around it: for a smooth
-    /// image the error on the cell is at most `(|f_xx| + |f_yy|)·s²/8`, and the
-    /// second differences `f(k−s) − 2f(k) + f(k+s)` at its four corners (along
-    /// x and along y) estimate `f_xx·s²` and `f_yy·s²`. The largest over the
-    /// corners is taken, RGB in-scatter and the largest transmittance channel.
-    /// This is the deviation a split would measure (`split`), found on the
-    /// lattice of root points (most of which the neighbouring windows need
-    /// anyway) instead of five new points inside the cell; a step or a
-    /// feature within a few cells shows as a large second difference, and the
-    /// cell is split as before.
+    /// corner (k, l), estimated from the root lattice around it. For a smooth
+    /// image the error on the cell is at most `(max|f_xx| + max|f_yy|)·s²/8`;
+    /// the second differences `D_xx = f(k−s) − 2f(k) + f(k+s)` (and `D_yy`) at
+    /// its four corners estimate `f_xx·s²` and `f_yy·s²`. A step of height Δ
+    /// inside the cell gives second differences of only ±Δ (Δ/8 by that
+    /// rule, where a split would measure Δ/2), but opposite ones at the two
+    /// ends of the edge it crosses: the third differences along the cell's
+    /// edges, `|D_xx(k) − D_xx(k+s)|/4` (and along y), are Δ/2 there and
+    /// O(s³) for a smooth image, and are added. RGB in-scatter and the
+    /// largest transmittance channel. Most of the points are the root
+    /// lattice of the neighbouring windows anyway; a step or a feature
+    /// within a few cells shows as a large difference, and the cell is split.
     fn root_deviation(&mut self, k: i64, l: i64, s: i64) -> ([f64; 3], f64) {
-        let mut dev = [0.0f64; 3];
-        let mut t_dev = 0.0f64;
-        for (ck, cl) in [(k, l), (k + s, l), (k, l + s), (k + s, l + s)] {
+        // Second differences along x and y at the corners (k,l), (k+s,l), (k,l+s), (k+s,l+s).
+        let mut dxx = [([0.0f64; 3], [0.0f64; 3]); 4];
+        let mut dyy = [([0.0f64; 3], [0.0f64; 3]); 4];
+        for (n, (ck, cl)) in [(k, l), (k + s, l), (k, l + s), (k + s, l + s)].into_iter().enumerate() {
             let ids = [
                 self.point(ck, cl),
                 self.point(ck - s, cl),
@@ -441,15 +448,30 @@ impl<S: FilterSample> TileLattice<'_, S> {
                 let p = &self.samples[i as usize];
                 (p.radiance(), p.transmittance())
             });
-            for ch in 0..3 {
-                let dxx = (xm.0[ch] - 2.0 * c.0[ch] + xp.0[ch]).abs();
-                let dyy = (ym.0[ch] - 2.0 * c.0[ch] + yp.0[ch]).abs();
-                dev[ch] = dev[ch].max((dxx + dyy) / 8.0);
-                let txx = (xm.1[ch] - 2.0 * c.1[ch] + xp.1[ch]).abs();
-                let tyy = (ym.1[ch] - 2.0 * c.1[ch] + yp.1[ch]).abs();
-                t_dev = t_dev.max((txx + tyy) / 8.0);
-            }
+            dxx[n] = (
+                std::array::from_fn(|ch| xm.0[ch] - 2.0 * c.0[ch] + xp.0[ch]),
+                std::array::from_fn(|ch| xm.1[ch] - 2.0 * c.1[ch] + xp.1[ch]),
+            );
+            dyy[n] = (
+                std::array::from_fn(|ch| ym.0[ch] - 2.0 * c.0[ch] + yp.0[ch]),
+                std::array::from_fn(|ch| ym.1[ch] - 2.0 * c.1[ch] + yp.1[ch]),
+            );
         }
+        let bound = |d: [[f64; 3]; 4], e: [[f64; 3]; 4], ch: usize| -> f64 {
+            // A non-finite sample is never smooth (f64::max would drop a NaN).
+            if d.iter().chain(&e).any(|v| !v[ch].is_finite()) {
+                return f64::INFINITY;
+            }
+            let max_abs = |v: &[[f64; 3]; 4]| v.iter().fold(0.0f64, |m, x| m.max(x[ch].abs()));
+            // Edges along x join corners 0–1 and 2–3; along y, 0–2 and 1–3.
+            let third =
+                (d[0][ch] - d[1][ch]).abs().max((d[2][ch] - d[3][ch]).abs()) + (e[0][ch] - e[2][ch]).abs().max((e[1][ch] - e[3][ch]).abs());
+            (max_abs(&d) + max_abs(&e)) / 8.0 + third / 4.0
+        };
+        let (lx, tx) = (dxx.map(|v| v.0), dxx.map(|v| v.1));
+        let (ly, ty) = (dyy.map(|v| v.0), dyy.map(|v| v.1));
+        let dev = std::array::from_fn(|ch| bound(lx, ly, ch));
+        let t_dev = (0..3).fold(0.0f64, |m, ch| m.max(bound(tx, ty, ch)));
         (dev, t_dev)
     }
 
@@ -458,6 +480,7 @@ impl<S: FilterSample> TileLattice<'_, S> {
         let CellOrigin {
             scale,
             root,
+            parent,
             parent_deviation,
         } = origin;
         let corners = [
@@ -518,6 +541,7 @@ impl<S: FilterSample> TileLattice<'_, S> {
             spread,
             scale,
             root: root.unwrap_or(i),
+            parent: parent.unwrap_or(u32::MAX),
         });
         i
     }
@@ -561,6 +585,7 @@ impl<S: FilterSample> TileLattice<'_, S> {
                 CellOrigin {
                     scale: c.scale,
                     root: Some(c.root),
+                    parent: Some(i),
                     parent_deviation: Some((dev, t_dev)),
                 },
             );
@@ -658,6 +683,7 @@ impl<S: FilterSample> TileLattice<'_, S> {
                             let origin = CellOrigin {
                                 scale,
                                 root: None,
+                                parent: None,
                                 parent_deviation: None,
                             };
                             let r = self.new_cell(k, l, ROOT_CELL, origin);
@@ -679,7 +705,7 @@ impl<S: FilterSample> TileLattice<'_, S> {
                 weight: 0.0,
                 flat: [0.0; 3],
                 carried: [0.0; 3],
-                last_step: [0.0; 3],
+                last_changes: HashMap::default(),
                 frontier: Vec::new(),
             };
             for j in 0..px.roots.len() {
@@ -718,7 +744,9 @@ impl<S: FilterSample> TileLattice<'_, S> {
                 let est = px.sum.map(|v| v / px.weight);
                 let mut change = [0.0f64; 3];
                 let mut terminal = [0.0f64; 3];
-                let mut step = [0.0f64; 3];
+                // Per parent: the summed change of its children split this round.
+                let mut by_parent: HashMap<u32, [f64; 3]> = HashMap::default();
+                let mut changes: HashMap<u32, [f64; 3]> = HashMap::default();
                 for &r in &px.roots {
                     let Some(cells) = by_root.get(&r) else { continue };
                     for &i in cells {
@@ -726,7 +754,6 @@ impl<S: FilterSample> TileLattice<'_, S> {
                         let mut ds = [-s[0], -s[1], -s[2]];
                         let mut dw = -w;
                         let mut is_terminal = true;
-                        let mut smooth = true;
                         let first = self.cells[i as usize].child;
                         for j in first..first + 4 {
                             let (sj, wj) = self.cell_sums(j, px.kc, px.lc);
@@ -735,32 +762,41 @@ impl<S: FilterSample> TileLattice<'_, S> {
                             }
                             dw += wj;
                             self.add_flat(j, wj, &mut px.flat);
-                            let child = &self.cells[j as usize];
-                            smooth &= child.flat;
-                            if child.refinable {
+                            if self.cells[j as usize].refinable {
                                 is_terminal = false;
                                 px.frontier.push(j);
                             }
                         }
+                        let mut d = [0.0f64; 3];
                         for ch in 0..3 {
                             px.sum[ch] += ds[ch];
                             // The change of the normalised estimate (dw is 0 up to rounding).
-                            let d = ((ds[ch] - est[ch] * dw) / px.weight).abs();
-                            if is_terminal {
-                                terminal[ch] += d;
-                            } else if smooth {
-                                change[ch] += d;
-                            } else {
-                                // A child is still not flat: a step runs through the cell.
-                                step[ch] += d;
+                            d[ch] = ((ds[ch] - est[ch] * dw) / px.weight).abs();
+                        }
+                        if is_terminal {
+                            for ch in 0..3 {
+                                terminal[ch] += d[ch];
                             }
+                        } else {
+                            let group = by_parent.entry(self.cells[i as usize].parent).or_default();
+                            for ch in 0..3 {
+                                group[ch] += d[ch];
+                            }
+                            changes.insert(i, d);
                         }
                     }
                 }
+                // The error these splits left: each parent's children's change
+                // times the rate measured against the parent's own change.
+                for (parent, sum) in &by_parent {
+                    let last = px.last_changes.get(parent);
+                    for ch in 0..3 {
+                        change[ch] += step_factor(sum[ch], last.map_or(0.0, |l| l[ch])) * sum[ch];
+                    }
+                }
+                px.last_changes = changes;
                 let mut err = [0.0f64; 3];
                 for ch in 0..3 {
-                    change[ch] += step_factor(step[ch], px.last_step[ch]) * step[ch];
-                    px.last_step[ch] = step[ch];
                     px.carried[ch] += TERMINAL_FACTOR * terminal[ch];
                     err[ch] = change[ch] + px.carried[ch] + px.flat[ch] / px.weight;
                 }
@@ -785,17 +821,17 @@ impl<S: FilterSample> TileLattice<'_, S> {
     }
 }
 
-/// The error left after a round of splits through a step, per unit of the
-/// change the round made. Across a step the filter integral converges as
-/// O(h): if each round leaves `ρ` times the previous error, a round that
-/// changed the estimate by `d` left `ρ/(1 − ρ)·d`. `ρ` is ½ where the window
-/// is flat across the split cells, and more where its weight grows towards
+/// The error a round of splits left, per unit of the change it made. Across
+/// a step the filter integral converges as O(h): if each split of a cell
+/// leaves `ρ` times its error, a split that changed the estimate by `d` left
+/// `ρ/(1 − ρ)·d`. `ρ` is about ¼ where the image is smooth, ½ across a step
+/// where the window is flat, and more where the window's weight grows towards
 /// the step (at ½ px cells on a step along a lattice line, 0.64: the change
-/// alone was 0.57× the error left). `ρ` is measured as this round's change
-/// over the last one's (both summed over the pixel's cells a step runs
-/// through), and the factor is kept within [1, 4] (4 for `ρ` ≥ 0.8, when the
-/// rounds do not shrink, e.g. as a second step enters the refinement). The
-/// first round has no measurement and takes [`TERMINAL_FACTOR`].
+/// alone was 0.57× the error left). `ρ` is measured per cell: the summed
+/// change of its children split this round over the change its own split
+/// made in the last round. The factor is kept within [1, 4] (4 for `ρ` ≥ 0.8,
+/// when the changes do not shrink); a cell without a measured split (a root,
+/// or a change of 0) takes [`TERMINAL_FACTOR`].
 fn step_factor(this_round: f64, last_round: f64) -> f64 {
     if last_round <= 0.0 || !last_round.is_finite() {
         return TERMINAL_FACTOR;
@@ -1155,6 +1191,15 @@ mod adaptive_tests {
                 1.0,
             );
             check("step", &step, tol, &[], 1.0);
+            // A low-contrast step (height the tolerance): its second differences
+            // alone (Δ/8) would let a root cell it crosses pass as flat.
+            check(
+                "low step",
+                &|x: f64, y: f64| if y > 0.37 * x + 2.1 { 1.0 + tol } else { 1.0 },
+                tol,
+                &[],
+                1.0,
+            );
             // A step along a lattice line (the pixel boundary y = 5), just off it.
             check(
                 "aligned step",
