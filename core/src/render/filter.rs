@@ -51,9 +51,9 @@
 //!   step the error falls as O(h), by less than half per split where the
 //!   window's weight grows towards the step (the last change alone fell
 //!   short of the error left by up to 1.8× on a step along a lattice line), plus
-//! - twice the changes from cells that could not be refined further (finest
-//!   size), carried from the round they were made (across a step the error
-//!   only halves per split), plus
+//! - twice the changes from splits after which no child can be refined
+//!   further (the finest size, or every child flat), carried from the round
+//!   they were made (across a step the error only halves per split), plus
 //! - for every flat cell, its corners' spread times its share of the window
 //!   (an unrefined flat cell cannot be off by more than that unless a feature
 //!   hides between its corners), plus
@@ -514,7 +514,7 @@ impl<S: FilterSample> TileLattice<'_, S> {
         // flat (it is refined, and its error shows).
         let mut flat = !at_light && small(&spread, t_spread);
         // A root has no parent: its interpolation error is estimated from the
-        // second differences of the root lattice around it instead.
+        // differences of the root lattice around it instead.
         let parent_deviation = match (parent_deviation, root) {
             (None, None) if !flat && !at_light => Some(self.root_deviation(k, l, size)),
             (d, _) => d,

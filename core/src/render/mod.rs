@@ -1381,8 +1381,10 @@ fn render_channels<const C: usize>(scene: &Scene, report: &mut Report, progress:
                 ([0.0; 3], [1.0; 3], 0)
             }
         };
-        // Running max (or min) over ±r along rows, then along columns, of a
-        // `cols × rows` array: the (2r+1)² window in 2·(2r+1) steps per pixel.
+        // Running max (or min, or logical or) over ±r along rows, then along
+        // columns, of a `cols × rows` array: the (2r+1)² window, clipped at the
+        // borders, in 2·(2r+1) steps per pixel. `pick` must be idempotent
+        // (the column pass starts from the pixel's own row result).
         fn window_extreme<T: Copy + Send + Sync, F: Fn(T, T) -> T + Copy + Sync>(
             v: &[T],
             cols: usize,
