@@ -35,8 +35,6 @@ import math
 import os
 import subprocess
 import sys
-import tempfile
-import time
 from pathlib import Path
 
 # numpy's BLAS threads would wait (spinning) beside the renderer's threads on
@@ -44,10 +42,9 @@ from pathlib import Path
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
-import tyndall  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_stage_vs_cycles import DATA, ROOT, read_rgb, rel_rmse  # noqa: E402
+from bench_stage_vs_cycles import DATA, ROOT, read_rgb, rel_rmse, render_cycles, render_tyndall  # noqa: E402
 
 TARGET = 0.01
 
@@ -130,15 +127,9 @@ def main() -> None:
             keep = None
             tyndall_pts, cycles_pts = [], []
             for tol in [float(t) for t in args.tolerances.split(",")]:
-                s = json.loads(json.dumps(scene))
-                s["output"] = dict(s.get("output", {}), layers=["inscatter"], tolerance=tol, threads=2)
-                best = float("inf")
-                for _ in range(3):
-                    t0 = time.perf_counter()
-                    layers, report = tyndall.render(s)
-                    best = min(best, time.perf_counter() - t0)
+                best, layers, report = render_tyndall(scene, tol)
                 if keep is None:
-                    radius = s["output"].get("pixel_filter", {}).get("width_px", 1.5)
+                    radius = scene.get("output", {}).get("pixel_filter", {}).get("width_px", 1.5)
                     keep = light_window_mask(report["stats"].get("light_images", []), *ref.shape[:2], radius)
                 img = layers["inscatter"].astype(np.float64)
                 err, err_all = rel_rmse(img, ref, keep), rel_rmse(img, ref)
@@ -156,25 +147,8 @@ def main() -> None:
                 )
             if args.bpy_python:
                 for n in [int(x) for x in args.samples.split(",")]:
-                    with tempfile.TemporaryDirectory() as tmp:
-                        out, log = Path(tmp) / "c.exr", Path(tmp) / "t.json"
-                        cmd = [args.bpy_python, str(ROOT / "scripts" / "cycles_reference.py"), str(scene_path)]
-                        cmd += [
-                            "--out",
-                            str(out),
-                            "--samples",
-                            str(n),
-                            "--seed",
-                            "7",
-                            "--time-log",
-                            str(log),
-                            "--threads",
-                            "2",
-                        ]
-                        subprocess.run(cmd, check=True, capture_output=True)
-                        secs = float(json.loads(log.read_text())["render_seconds"])
-                        img = read_rgb(out)
-                        err, err_all = rel_rmse(img, ref, keep), rel_rmse(img, ref)
+                    secs, img = render_cycles(args.bpy_python, scene_path, n)
+                    err, err_all = rel_rmse(img, ref, keep), rel_rmse(img, ref)
                     rows.append(
                         {"scene": name, "resolution": res, "renderer": "Cycles CPU", "setting": n, "seconds": secs}
                         | {"rel_rmse": err, "rel_rmse_all_pixels": err_all}

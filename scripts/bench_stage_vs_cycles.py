@@ -65,6 +65,28 @@ def light_pixel_mask(light_images: list[list[float]], height: int, width: int) -
     return keep
 
 
+def render_tyndall(scene: dict, tolerance: float, runs: int = 3) -> tuple[float, dict, dict]:
+    """Best wall time of `runs` ``tyndall.render`` calls (in-scatter only, 2 threads), layers, report."""
+    s = json.loads(json.dumps(scene))
+    s["output"] = dict(s.get("output", {}), layers=["inscatter"], tolerance=tolerance, threads=2)
+    best = float("inf")
+    for _ in range(runs):
+        t0 = time.perf_counter()
+        layers, report = tyndall.render(s)
+        best = min(best, time.perf_counter() - t0)
+    return best, layers, report
+
+
+def render_cycles(bpy_python: str, scene_path: Path, samples: int) -> tuple[float, np.ndarray]:
+    """Cycles' render time (from its own log) and image, `samples` per pixel, seed 7, 2 threads."""
+    with tempfile.TemporaryDirectory() as tmp:
+        out, log = Path(tmp) / "c.exr", Path(tmp) / "t.json"
+        cmd = [bpy_python, str(ROOT / "scripts" / "cycles_reference.py"), str(scene_path)]
+        cmd += ["--out", str(out), "--samples", str(samples), "--seed", "7", "--time-log", str(log), "--threads", "2"]
+        subprocess.run(cmd, check=True, capture_output=True)
+        return float(json.loads(log.read_text()).get("render_seconds", float("nan"))), read_rgb(out)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("name")
@@ -84,13 +106,7 @@ def main() -> None:
     print("|---|---|---|---|---|")
     keep = None
     for tol in [float(t) for t in args.tolerances.split(",")]:
-        s = json.loads(json.dumps(scene))
-        s["output"] = dict(s.get("output", {}), layers=["inscatter"], tolerance=tol, threads=2)
-        best = float("inf")
-        for _ in range(3):
-            t0 = time.perf_counter()
-            layers, report = tyndall.render(s)
-            best = min(best, time.perf_counter() - t0)
+        best, layers, report = render_tyndall(scene, tol)
         if keep is None:
             keep = light_pixel_mask(report["stats"].get("light_images", []), *ref.shape[:2])
         img = layers["inscatter"].astype(np.float64)
@@ -100,24 +116,18 @@ def main() -> None:
         print(f"| Tyndall | tolerance {tol:g} | {best:.3f} | {err:.3%} | {err_keep:.3%} |")
     if args.bpy_python:
         for n in [int(x) for x in args.samples.split(",")]:
-            with tempfile.TemporaryDirectory() as tmp:
-                out, log = Path(tmp) / "c.exr", Path(tmp) / "t.json"
-                cmd = [args.bpy_python, str(ROOT / "scripts" / "cycles_reference.py"), str(scene_path)]
-                cmd += ["--out", str(out), "--samples", str(n), "--seed", "7", "--time-log", str(log), "--threads", "2"]
-                subprocess.run(cmd, check=True, capture_output=True)
-                render_s = json.loads(log.read_text()).get("render_seconds", float("nan"))
-                img = read_rgb(out)
-                err, err_keep = rel_rmse(img, ref), rel_rmse(img, ref, keep)
-                rows.append(
-                    {
-                        "renderer": "Cycles CPU",
-                        "setting": n,
-                        "seconds": render_s,
-                        "rel_rmse": err,
-                        "rel_rmse_without_light": err_keep,
-                    }
-                )
-                print(f"| Cycles CPU | {n} samples | {render_s:.3f} | {err:.3%} | {err_keep:.3%} |")
+            render_s, img = render_cycles(args.bpy_python, scene_path, n)
+            err, err_keep = rel_rmse(img, ref), rel_rmse(img, ref, keep)
+            rows.append(
+                {
+                    "renderer": "Cycles CPU",
+                    "setting": n,
+                    "seconds": render_s,
+                    "rel_rmse": err,
+                    "rel_rmse_without_light": err_keep,
+                }
+            )
+            print(f"| Cycles CPU | {n} samples | {render_s:.3f} | {err:.3%} | {err_keep:.3%} |")
     if args.json:
         Path(args.json).write_text(json.dumps({"scene": args.name, "rows": rows}, indent=1))
 

@@ -369,8 +369,6 @@ struct TileLattice<'a, S> {
     samples: Vec<S>,
     cells: Vec<Cell>,
     roots: HashMap<(i64, i64), u32>,
-    /// Memoised window scales by pixel index.
-    scales: HashMap<usize, f64>,
     /// Per-sample weight sums while a pixel is accumulated (all 0 between pixels).
     scratch: Vec<f64>,
 }
@@ -398,7 +396,7 @@ impl<S: FilterSample> TileLattice<'_, S> {
 
     /// Smallest window scale of the in-image pixels whose windows hold the
     /// root cell at (k, l).
-    fn root_scale(&mut self, k: i64, l: i64) -> f64 {
+    fn root_scale(&self, k: i64, l: i64) -> f64 {
         let half = self.table.half_units;
         // Pixel x holds [a, a + ROOT_CELL] when x·U − half ≤ a and a + ROOT_CELL ≤ x·U + half.
         let range = |a: i64| -> (i64, i64) {
@@ -412,8 +410,7 @@ impl<S: FilterSample> TileLattice<'_, S> {
         for y in y0.max(0)..=y1.min(self.job.height as i64 - 1) {
             for x in x0.max(0)..=x1.min(self.job.width as i64 - 1) {
                 let i = y as usize * self.job.width + x as usize;
-                let v = *self.scales.entry(i).or_insert_with(|| (self.job.window_scale)(i));
-                m = m.min(v);
+                m = m.min((self.job.window_scale)(i));
             }
         }
         if m.is_finite() { m } else { 0.0 }
@@ -694,7 +691,7 @@ impl<S: FilterSample> TileLattice<'_, S> {
                     roots.push(r);
                 }
             }
-            let scale = *self.scales.entry(index).or_insert_with(|| (self.job.window_scale)(index));
+            let scale = (self.job.window_scale)(index);
             let mut px = PixelState {
                 index,
                 kc,
@@ -882,7 +879,6 @@ pub(crate) fn filter_adaptive<S: FilterSample>(
                 samples: Vec::with_capacity(4096),
                 cells: Vec::with_capacity(4096),
                 roots: HashMap::default(),
-                scales: HashMap::default(),
                 scratch: Vec::with_capacity(4096),
             },
             |lattice, pixels| {
@@ -890,7 +886,6 @@ pub(crate) fn filter_adaptive<S: FilterSample>(
                 lattice.samples.clear();
                 lattice.cells.clear();
                 lattice.roots.clear();
-                lattice.scales.clear();
                 let out = lattice.run(pixels);
                 let stats = AdaptiveFilterStats {
                     samples: lattice.samples.len() as u64,

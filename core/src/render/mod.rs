@@ -1507,22 +1507,32 @@ fn render_channels<const C: usize>(scene: &Scene, report: &mut Report, progress:
         // The other pixels' filter error: the Laplacian term, absolute and
         // relative to the window's scale (maxima over the image).
         let lap_error = |i: usize| -> [f64; 3] { if flagged[i] { [0.0; 3] } else { lap_term(i).0 } };
-        let (lap_abs, lap_rel) = (0..n)
-            .into_par_iter()
-            .map(|i| {
-                let el = lap_error(i).iter().fold(0.0f64, |a, b| a.max(*b));
-                let m = window_scale(i);
-                (el, if m > 0.0 { el / m } else { 0.0 })
-            })
-            .reduce(|| (0.0, 0.0), |a, b| (a.0.max(b.0), a.1.max(b.1)));
-        if want_error {
-            error.par_iter_mut().enumerate().for_each(|(i, e)| {
-                let el = lap_error(i);
-                for c in 0..3 {
-                    e[c] += el[c] as f32;
-                }
-            });
-        }
+        // One pass: each pixel's term is added to its error layer (when
+        // requested) and folded into the maxima.
+        let maxima = |i: usize, el: &[f64; 3]| -> (f64, f64) {
+            let a = el.iter().fold(0.0f64, |m, v| m.max(*v));
+            let m = window_scale(i);
+            (a, if m > 0.0 { a / m } else { 0.0 })
+        };
+        let larger = |a: (f64, f64), b: (f64, f64)| (a.0.max(b.0), a.1.max(b.1));
+        let (lap_abs, lap_rel) = if want_error {
+            error
+                .par_iter_mut()
+                .enumerate()
+                .map(|(i, e)| {
+                    let el = lap_error(i);
+                    for c in 0..3 {
+                        e[c] += el[c] as f32;
+                    }
+                    maxima(i, &el)
+                })
+                .reduce(|| (0.0, 0.0), larger)
+        } else {
+            (0..n)
+                .into_par_iter()
+                .map(|i| maxima(i, &lap_error(i)))
+                .reduce(|| (0.0, 0.0), larger)
+        };
         stats.max_abs += lap_abs;
         stats.max_rel += lap_rel;
         // Where the centre sample stands for the filtered pixel, the filter's
