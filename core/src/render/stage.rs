@@ -332,7 +332,7 @@ impl<const C: usize> StageLights<C> {
         bvh: Option<&Bvh>,
         tolerance: f64,
         scratch: &mut Scratch,
-        per_light: &mut [[f64; 3]; MAX_LIGHT_LAYERS],
+        per_light: &mut [[f64; 3]],
         to_rgb: &dyn Fn(&[f64; C]) -> [f64; 3],
     ) -> StageShade<C> {
         let mut out = StageShade {
