@@ -157,7 +157,7 @@ pub fn render(scene: &Scene, progress: Option<Progress<'_>>) -> Result<(Images, 
         // Per-light slots in every sample only when per-light layers are
         // output: a sample without them is 190 instead of 950 bytes, and the
         // pixel filter's lattice stores and sums tens of thousands of them
-        // (96×54 narrow beam, tolerance 0.05: its time −22 %).
+        // (96×54 narrow beam, tolerance 0.05: its time 13.6 → 12.4 ms).
         let per_light = [LayerKind::InscatterPerLight, LayerKind::SurfaceTransmittancePerLight]
             .iter()
             .any(|k| scene.output.layers.contains(k));
