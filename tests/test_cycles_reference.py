@@ -77,3 +77,35 @@ def test_spot_with_occluder_shadow_shaft_matches_cycles() -> None:
     away = relative_rmse(got[mask], ref[mask])
     print(f"{name}: relative RMSE {away:.4%} outside the light's 6x6 px")
     assert away <= 0.006
+
+
+def _inscatter_and_error(name: str, tolerance: float) -> tuple[np.ndarray, np.ndarray]:
+    scene = json.loads((DATA / f"{name}.json").read_text())
+    scene["output"] = dict(scene.get("output", {}), layers=["inscatter", "error"], tolerance=tolerance)
+    layers, _ = tyndall.render(scene)
+    return layers["inscatter"].astype(np.float64), layers["error"].astype(np.float64)
+
+
+@pytest.mark.parametrize("name", ["narrow_beam_5deg", "spot_box_occluder", "two_coloured_spots"])
+def test_loose_tolerance_error_layer_bounds_a_tight_render(name: str) -> None:
+    """At tolerance 0.1 the error layer bounds the distance to a render at 1e-3
+    (plus that render's own estimate) in ≥ 99 % of pixels (issue 3's criterion,
+    with Tyndall itself as the independent reference, free of Monte Carlo noise).
+    Pixels next to a beam's edge, where the centre sample stands, used to be
+    charged their own Laplacian term only. Pixels outside their estimate, of
+    5184: narrow beam 39 (24 of them claiming an error of 0 although their
+    filter window reaches the beam), box occluder 48, two coloured spots 53
+    (98.98 %, below the criterion).
+    The term is now the largest of the 3×3 neighbourhood's, whose stencils cover
+    the window. What is left (box occluder: its shadow's vertical edge, a step
+    whose filter error the Laplacian sees at about a third) is reported."""
+    loose, loose_err = _inscatter_and_error(name, 0.1)
+    tight, tight_err = _inscatter_and_error(name, 1e-3)
+    deviation = np.abs(loose - tight).max(-1)
+    bound = (loose_err + tight_err).max(-1) * (1.0 + 1e-6) + 2.0**-23 * tight.max(-1)
+    outside = deviation > bound
+    claims_exact = outside & (loose_err.max(-1) == 0.0)
+    print(f"{name}: {outside.sum()} of {outside.size} pixels outside their estimate, {claims_exact.sum()} estimated 0")
+    assert outside.mean() <= 0.01
+    if name != "spot_box_occluder":
+        assert outside.sum() == 0
