@@ -1532,20 +1532,57 @@ fn render_channels<const C: usize, const K: usize>(
         // tolerance 0.1) the own term was up to 8× too small (1.7e-4 against
         // 2.0e-5), and a pixel whose five samples are all 0 claimed no error
         // although its window reaches the beam.
+        // A step next to the centre is not in that term. Between the centre
+        // and a neighbour, at an unknown offset δ, a step of height Δ leaves
+        // the corrected centre sample wrong by up to (½ − σ²/2)·Δ (δ → 0: half
+        // the window's weight is across it, and the correction restores
+        // σ²/2·Δ), 0.41·Δ for Blender's filter, where the Laplacian term is
+        // 0.086·Δ (box occluder, 96×54, tolerance 0.1: the shadow's vertical
+        // edge was wrong by up to 6.6e-3 against terms of 2.3e-3). Its
+        // signature: both third differences across the centre,
+        // L(2) − 3L(1) + 3L(0) − L(−1) and its mirror, are ≥ Δ. A step between
+        // ±1 and ±2 px moves only one of them (its error, ≤ 0.006·Δ, is within
+        // the neighbours' Laplacian terms), and on a smooth image both are
+        // O(h³·L'''). So each pixel is also charged (½ − σ²/2)·min(|left|,
+        // |right|) per axis, summed over the two axes (½ where the centre
+        // sample stands uncorrected), which bounds the 1-D step at every δ
+        // (checked against the window's integral at 5 201 offsets). The
+        // stencil needs ±2 px: a filter narrower than that (reach 1) has no
+        // room for a step beside the centre that its Laplacian does not see.
+        let step_factor = (0.5 - half_var).max(0.0);
+        let step_term = |x: usize, y: usize| -> [f64; 3] {
+            if r < 2 {
+                return [0.0; 3];
+            }
+            let j = padded_index(x, y) as isize;
+            let factor = if uncorrected(x, y) { 0.5 } else { step_factor };
+            std::array::from_fn(|c| {
+                let v = |k: isize| f64::from(padded[(j + k) as usize].0[c]);
+                let axis = |d: isize| {
+                    let right = v(2 * d) - 3.0 * v(d) + 3.0 * v(0) - v(-d);
+                    let left = v(d) - 3.0 * v(0) + 3.0 * v(-d) - v(-2 * d);
+                    right.abs().min(left.abs())
+                };
+                factor * (axis(1) + axis(pw as isize))
+            })
+        };
         // Per pixel: the largest channel's in-scatter term and the
         // transmittance term; the per-channel terms only for the error layer.
         let mut l_terms = vec![0.0f64; n];
         let mut t_terms = vec![0.0f64; n];
+        let mut s_terms = vec![0.0f64; n];
         let mut channel_terms = vec![[0.0f64; 3]; if want_error { n } else { 0 }];
         l_terms
             .par_chunks_mut(w)
             .zip(t_terms.par_chunks_mut(w))
+            .zip(s_terms.par_chunks_mut(w))
             .enumerate()
-            .for_each(|(y, (l_row, t_row))| {
+            .for_each(|(y, ((l_row, t_row), s_row))| {
                 for x in 0..w {
                     let (el, et) = lap_term(x, y);
                     l_row[x] = el.iter().fold(0.0f64, |m, v| m.max(*v));
                     t_row[x] = et;
+                    s_row[x] = step_term(x, y).iter().fold(0.0f64, |m, v| m.max(*v));
                 }
             });
         if want_error {
@@ -1555,8 +1592,17 @@ fn render_channels<const C: usize, const K: usize>(
                 }
             });
             channel_terms = window_extreme(&channel_terms, w, h, 1, |a, b| [a[0].max(b[0]), a[1].max(b[1]), a[2].max(b[2])]);
+            channel_terms.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
+                for (x, t) in row.iter_mut().enumerate() {
+                    let st = step_term(x, y);
+                    for c in 0..3 {
+                        t[c] = t[c].max(st[c]);
+                    }
+                }
+            });
         }
-        let near_terms: Vec<f64> = window_extreme(&l_terms, w, h, 1, f64::max);
+        let mut near_terms: Vec<f64> = window_extreme(&l_terms, w, h, 1, f64::max);
+        near_terms.par_iter_mut().zip(&s_terms).for_each(|(t, s)| *t = t.max(*s));
         // Classify every pixel: either its centre sample stands (with the
         // nearby Laplacian terms as its filter error) or it needs the filter integral.
         let mut flagged = vec![false; n];
@@ -1684,7 +1730,7 @@ fn render_channels<const C: usize, const K: usize>(
         );
         report.plan.left_out(
             format!("pixel filter integral on {} smooth pixels", n - filtered.len()),
-            "the image is smooth within the filter: the centre sample plus the filter's second-order effect (σ²/2)·∇²L from the 5-point Laplacian of the centre samples (the centre sample alone on the frame's border) is used; the largest such term of the pixel's 3×3 neighbourhood (whose stencils cover the window) is below the tolerance and is the pixel's filter error estimate (conservative where ∇²L varies little across the window; the pixel's own term alone fell short beside a beam's edge)",
+            "the image is smooth within the filter: the centre sample plus the filter's second-order effect (σ²/2)·∇²L from the 5-point Laplacian of the centre samples (the centre sample alone on the frame's border) is used; the largest such term of the pixel's 3×3 neighbourhood (whose stencils cover the window), or a step beside the centre's worst case (½ − σ²/2)·Δ from third differences, is below the tolerance and is the pixel's filter error estimate (the pixel's own term alone fell short beside a beam's edge)",
         );
         t = report.time("pixel_filter", t);
     } else {
