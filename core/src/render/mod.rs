@@ -1179,7 +1179,7 @@ fn render_channels<const C: usize, const K: usize>(
     let spectral = C != 3;
     let abs_weights = if spectral { Some(abs_rgb_weights()) } else { None };
     // One view ray, reduced to RGB (identity for C = 3), written over `out`
-    // (a Sample is ≈ 900 bytes with its per-light slots: pass 1 reuses one
+    // (a Sample with 16 per-light slots is ≈ 950 bytes: pass 1 reuses one
     // per row instead of zeroing and returning a new one per pixel, −17 % of
     // its time on a 768×432 frame whose rays all miss the one spot). Only
     // the first `n_stage` per-light slots are ever written, so the rest stay
@@ -1566,38 +1566,38 @@ fn render_channels<const C: usize, const K: usize>(
                 factor * (axis(1) + axis(pw as isize))
             })
         };
-        // Per pixel: the largest channel's in-scatter term and the
-        // transmittance term; the per-channel terms only for the error layer.
+        // Per pixel: the largest channel's in-scatter and step terms and the
+        // transmittance term; the per-channel terms only for the error layer
+        // (not requested, they get one dummy element per row).
         let mut l_terms = vec![0.0f64; n];
         let mut t_terms = vec![0.0f64; n];
         let mut s_terms = vec![0.0f64; n];
-        let mut channel_terms = vec![[0.0f64; 3]; if want_error { n } else { 0 }];
+        let (per_channel, channel_chunk) = (if want_error { n } else { h }, if want_error { w } else { 1 });
+        let mut channel_terms = vec![[0.0f64; 3]; per_channel];
+        let mut channel_steps = vec![[0.0f64; 3]; per_channel];
+        let largest = |v: &[f64; 3]| v.iter().fold(0.0f64, |m, c| m.max(*c));
         l_terms
             .par_chunks_mut(w)
             .zip(t_terms.par_chunks_mut(w))
             .zip(s_terms.par_chunks_mut(w))
+            .zip(channel_terms.par_chunks_mut(channel_chunk))
+            .zip(channel_steps.par_chunks_mut(channel_chunk))
             .enumerate()
-            .for_each(|(y, ((l_row, t_row), s_row))| {
+            .for_each(|(y, ((((l_row, t_row), s_row), cl_row), cs_row))| {
                 for x in 0..w {
                     let (el, et) = lap_term(x, y);
-                    l_row[x] = el.iter().fold(0.0f64, |m, v| m.max(*v));
-                    t_row[x] = et;
-                    s_row[x] = step_term(x, y).iter().fold(0.0f64, |m, v| m.max(*v));
+                    let st = step_term(x, y);
+                    (l_row[x], t_row[x], s_row[x]) = (largest(&el), et, largest(&st));
+                    if want_error {
+                        (cl_row[x], cs_row[x]) = (el, st);
+                    }
                 }
             });
         if want_error {
-            channel_terms.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
-                for (x, t) in row.iter_mut().enumerate() {
-                    *t = lap_term(x, y).0;
-                }
-            });
             channel_terms = window_extreme(&channel_terms, w, h, 1, |a, b| [a[0].max(b[0]), a[1].max(b[1]), a[2].max(b[2])]);
-            channel_terms.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
-                for (x, t) in row.iter_mut().enumerate() {
-                    let st = step_term(x, y);
-                    for c in 0..3 {
-                        t[c] = t[c].max(st[c]);
-                    }
+            channel_terms.par_iter_mut().zip(&channel_steps).for_each(|(t, st)| {
+                for c in 0..3 {
+                    t[c] = t[c].max(st[c]);
                 }
             });
         }
