@@ -1546,7 +1546,7 @@ fn render_channels<const C: usize, const K: usize>(
         // O(h³·L'''). So each pixel is also charged (½ − σ²/2)·min(|left|,
         // |right|) per axis, summed over the two axes (½ where the centre
         // sample stands uncorrected), which bounds the 1-D step at every δ
-        // (checked against the window's integral at 5 201 offsets). The
+        // (`step_charge_bounds_the_filter_error_of_a_step` checks it). The
         // stencil needs ±2 px: a filter narrower than that (reach 1) has no
         // room for a step beside the centre that its Laplacian does not see.
         let step_factor = (0.5 - half_var).max(0.0);
@@ -1558,11 +1558,7 @@ fn render_channels<const C: usize, const K: usize>(
             let factor = if uncorrected(x, y) { 0.5 } else { step_factor };
             std::array::from_fn(|c| {
                 let v = |k: isize| f64::from(padded[(j + k) as usize].0[c]);
-                let axis = |d: isize| {
-                    let right = v(2 * d) - 3.0 * v(d) + 3.0 * v(0) - v(-d);
-                    let left = v(d) - 3.0 * v(0) + 3.0 * v(-d) - v(-2 * d);
-                    right.abs().min(left.abs())
-                };
+                let axis = |d: isize| step_beside_centre([v(-2 * d), v(-d), v(0), v(d), v(2 * d)]);
                 factor * (axis(1) + axis(pw as isize))
             })
         };
@@ -1880,6 +1876,17 @@ fn second_order_filter_term(img: &[[f32; 3]], w: usize, i: usize, half_var: f64)
 /// A centre sample as stored in the images: (L, T, surface id).
 type CentreSample = ([f32; 3], [f32; 3], u32);
 
+/// The signature of a step between the centre `v[2]` and a neighbour, from
+/// five samples at −2..=2 px along one axis: the smaller of the two third
+/// differences across the centre, L(2) − 3L(1) + 3L(0) − L(−1) and its mirror.
+/// A step Δ beside the centre makes both ≥ Δ; one between ±1 and ±2 px moves
+/// only one; on a smooth image both are O(h³·L''').
+fn step_beside_centre(v: [f64; 5]) -> f64 {
+    let right = v[4] - 3.0 * v[3] + 3.0 * v[2] - v[1];
+    let left = v[3] - 3.0 * v[2] + 3.0 * v[1] - v[0];
+    right.abs().min(left.abs())
+}
+
 /// Per-row counts and error maxima of pass 1.
 #[derive(Debug, Default, Clone, Copy)]
 struct RowStats {
@@ -2148,4 +2155,39 @@ fn abs_rgb_weights() -> [[f64; SPECTRAL_SAMPLES]; 3] {
         }
     }
     out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The charge where a centre sample stands, on a 1-D step of height 1 at
+    /// every offset δ in ±2.6 px (5 201 offsets), for Blender's filter and two
+    /// others: the corrected centre sample L(0) + σ²/2·(L(1) + L(−1) − 2L(0))
+    /// differs from the window's integral by at most the larger of the
+    /// neighbours' Laplacian terms and (½ − σ²/2)·step_beside_centre.
+    #[test]
+    fn step_charge_bounds_the_filter_error_of_a_step() {
+        for width_px in [1.5, 1.2, 2.0] {
+            let filter = filter::PixelFilter::BlackmanHarris { width_px };
+            let nodes = filter.nodes(20_000);
+            let half_var = 0.5 * filter.variance();
+            for k in 0..=5200 {
+                let delta = -2.6 + k as f64 * 1e-3;
+                let l = |x: f64| if x > delta { 1.0 } else { 0.0 };
+                let window: f64 = nodes.iter().map(|(x, wgt)| wgt * l(*x)).sum();
+                let corrected = l(0.0) + half_var * (l(1.0) + l(-1.0) - 2.0 * l(0.0));
+                let error = (corrected - window).abs();
+                let lap = |c: f64| half_var * (l(c + 1.0) + l(c - 1.0) - 2.0 * l(c)).abs();
+                let near = lap(-1.0).max(lap(0.0)).max(lap(1.0));
+                let step = (0.5 - half_var) * step_beside_centre([l(-2.0), l(-1.0), l(0.0), l(1.0), l(2.0)]);
+                // 2e-4: the midpoint rule's own error on the window's integral at a step.
+                assert!(
+                    error <= near.max(step) + 2e-4,
+                    "width {width_px}, δ = {delta}: error {error} > {}",
+                    near.max(step)
+                );
+            }
+        }
+    }
 }
