@@ -111,3 +111,38 @@ def test_loose_tolerance_error_layer_bounds_a_tight_render(name: str) -> None:
     print(f"{name}: {outside.sum()} of {outside.size} pixels outside their estimate, {claims_exact.sum()} estimated 0")
     assert outside.mean() <= 0.01
     assert outside.sum() == 0
+
+
+def _render_layers(scene: dict, **output: object) -> tuple[dict, dict]:
+    scene = dict(scene, output=dict(scene.get("output", {}), **output))
+    return tyndall.render(scene)
+
+
+@pytest.mark.parametrize(
+    "name", ["narrow_beam_5deg", "spot_box_occluder", "two_coloured_spots", "composite_stage", "camera_in_dense_beam"]
+)
+def test_unlit_tiles_are_left_out_without_changing_a_pixel(name: str) -> None:
+    """With only in-scatter layers requested, the rays of tiles whose view
+    rays (padded by every pixel their results read) miss every spot's cone are
+    not traced. Tracing every pixel instead (skip_unlit_tiles false) gives the
+    same in-scatter, per-light and error layers bit for bit, so every left-out
+    pixel is exactly 0 and none of its neighbours' filtering changed. A camera
+    inside a beam has no unlit tile."""
+    scene = json.loads((DATA / f"{name}.json").read_text())
+    layers = ["inscatter", "inscatter_per_light", "error"]
+    skipped, report = _render_layers(scene, layers=layers, tolerance=0.05)
+    traced, full_report = _render_layers(scene, layers=layers, tolerance=0.05, skip_unlit_tiles=False)
+    assert sorted(skipped) == sorted(traced)
+    for k in skipped:
+        assert np.array_equal(skipped[k], traced[k]), k
+    unlit = report["stats"]["pixels_unlit"]
+    assert full_report["stats"]["pixels_unlit"] == 0
+    left_out = [e for e in report["plan"]["left_out"] if "unlit" in e["why"]]
+    if name == "camera_in_dense_beam":
+        assert unlit == 0 and not left_out
+    else:
+        assert unlit > 0.2 * skipped["inscatter"].shape[0] * skipped["inscatter"].shape[1]
+        assert left_out and str(unlit) in left_out[0]["what"]
+    # Asking for a layer that needs every ray (depth) traces every pixel.
+    _, with_depth = _render_layers(scene, layers=["inscatter", "depth"], tolerance=0.05)
+    assert with_depth["stats"]["pixels_unlit"] == 0

@@ -104,6 +104,10 @@ pub struct Stats {
     pub rays_hit_surface: u64,
     /// View rays that crossed no medium: no integral evaluated.
     pub rays_without_medium: u64,
+    /// Pixels not traced: their tile misses every light's illumination volume
+    /// (in-scatter exactly 0) and no requested layer needs the ray.
+    #[serde(default)]
+    pub pixels_unlit: u64,
     /// Pixels with a NaN or infinite value in any layer (0 unless there is a bug).
     pub non_finite_pixels: u64,
     /// Triangles in the BVH.

@@ -919,6 +919,12 @@ pub struct Output {
     /// Pixel filter of perspective images. Default Blackman–Harris 1.5 px (Blender's).
     #[serde(default)]
     pub pixel_filter: PixelFilter,
+    /// Leave out the view rays of image tiles that provably miss every
+    /// light's illumination volume, when only in-scatter layers (and the
+    /// error) are requested: their in-scatter is exactly 0. Default true;
+    /// false traces every pixel (same images, for checking).
+    #[serde(default = "default_true")]
+    pub skip_unlit_tiles: bool,
 }
 
 impl Default for Output {
@@ -929,6 +935,7 @@ impl Default for Output {
             threads: 0,
             spectral: SpectralMode::Auto,
             pixel_filter: PixelFilter::default(),
+            skip_unlit_tiles: true,
         }
     }
 }
@@ -938,6 +945,9 @@ fn default_layers() -> Vec<LayerKind> {
 }
 fn default_tolerance() -> f64 {
     1e-4
+}
+fn default_true() -> bool {
+    true
 }
 
 // ---------------------------------------------------------------- loading
