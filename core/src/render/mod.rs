@@ -1450,35 +1450,12 @@ fn render_channels<const C: usize, const K: usize>(
         // (Cycles' filter reaches outside the frame as well). The ring is traced here.
         let r = reach as usize;
         let (pw, ph) = (w + 2 * r, h + 2 * r);
-        // Every pass below runs by rows and columns, not by a flat index
-        // divided by the width (twice per pixel in several passes): with the
-        // window maxima in f32, 37 → 31 ms on one thread at 768×432.
-        let mut padded: Vec<CentreSample> = vec![([0.0; 3], [0.0; 3], 0); pw * ph];
-        padded.par_chunks_mut(pw).enumerate().for_each(|(py, prow)| {
-            let y = py as isize - reach;
-            for (px, out) in prow.iter_mut().enumerate() {
-                let x = px as isize - reach;
-                *out = if x >= 0 && y >= 0 && (x as usize) < w && (y as usize) < h {
-                    let i = y as usize * w + x as usize;
-                    (inscatter[i], transmittance[i], surface[i])
-                } else if unlit(x, y) {
-                    ([0.0; 3], [1.0; 3], 0)
-                } else {
-                    let s = sample(x as f64 + 0.5, y as f64 + 0.5);
-                    (s.l.map(|v| v as f32), s.t.map(|v| v.clamp(0.0, 1.0) as f32), s.surface)
-                };
-            }
-        });
-        // Index in `padded` of in-frame pixel (x, y); its neighbours within
-        // `reach` are all in `padded`.
-        let padded_index = |x: usize, y: usize| (y + r) * pw + x + r;
         // Per row of `padded`, the columns [lo, hi) outside which every
         // pixel, and every pixel within `2r + 2` of it, is unlit. There each
         // pass below would only reproduce its defaults (no in-scatter, no
         // surface, no term, not flagged: each reads within r + 1 px of an
         // unlit pixel, all 0), so nothing is computed. Without unlit tiles:
-        // whole rows. (768×432, narrow beam, 83 % unlit: classification
-        // 15–38 → … ms.)
+        // whole rows.
         debug_assert_eq!(r, ring);
         let padded_spans: Vec<(usize, usize)> = match &unlit_grid {
             None => vec![(0, pw); ph],
@@ -1513,45 +1490,36 @@ fn render_channels<const C: usize, const K: usize>(
                 (lo.saturating_sub(r).min(w), hi.saturating_sub(r).min(w))
             })
             .collect();
-        // Running max (or min, or logical or) over ±r along rows, then along
-        // columns, of a `cols × rows` array: the (2r+1)² window, clipped at the
-        // borders, in 2·(2r+1) steps per pixel. `pick` must be idempotent
-        // (the column pass starts from the pixel's own row result).
-        // Only the columns `spans[y]` of each row are computed; elsewhere a
-        // pixel keeps its own value (its window holds only defaults there).
-        fn window_extreme<T: Copy + Send + Sync, F: Fn(T, T) -> T + Copy + Sync>(
-            v: &[T],
-            cols: usize,
-            rows: usize,
-            r: usize,
-            pick: F,
-            spans: &[(usize, usize)],
-        ) -> Vec<T> {
-            let mut along_rows = v.to_vec();
-            along_rows
-                .par_chunks_mut(cols)
-                .zip(v.par_chunks(cols))
-                .zip(spans)
-                .for_each(|((out, row), &(lo, hi))| {
-                    for x in lo..hi {
-                        out[x] = row[x.saturating_sub(r)..(x + r + 1).min(cols)]
-                            .iter()
-                            .copied()
-                            .reduce(pick)
-                            .unwrap_or(out[x]);
-                    }
-                });
-            let mut both = along_rows.clone();
-            both.par_chunks_mut(cols).zip(spans).enumerate().for_each(|(y, (out, &(lo, hi)))| {
-                for k in y.saturating_sub(r)..(y + r + 1).min(rows) {
-                    let row = &along_rows[k * cols..(k + 1) * cols];
-                    for (o, &a) in out[lo..hi].iter_mut().zip(&row[lo..hi]) {
-                        *o = pick(*o, a);
-                    }
+        // Which surface a centre sample sees, as one key: the mesh + 1, or 0
+        // for none. Triangles of one mesh are one surface (T and L are
+        // continuous across its creases).
+        let surface_key = |s: u32| if s == 0 { 0 } else { owner[(s - 1) as usize] + 1 };
+        // Zeroed (no in-scatter, no surface), and filled only within the
+        // spans: elsewhere every pixel is unlit, and when a tile is unlit the
+        // transmittance is held at 1 in every sample and not read (`need_t`).
+        let mut padded: Vec<CentreSample> = vec![([0.0; 3], [0.0; 3], 0); pw * ph];
+        padded
+            .par_chunks_mut(pw)
+            .zip(&padded_spans)
+            .enumerate()
+            .for_each(|(py, (prow, &(lo, hi)))| {
+                let y = py as isize - reach;
+                for (px, out) in prow.iter_mut().enumerate().take(hi).skip(lo) {
+                    let x = px as isize - reach;
+                    *out = if x >= 0 && y >= 0 && (x as usize) < w && (y as usize) < h {
+                        let i = y as usize * w + x as usize;
+                        (inscatter[i], transmittance[i], surface_key(surface[i]))
+                    } else if unlit(x, y) {
+                        ([0.0; 3], [1.0; 3], 0)
+                    } else {
+                        let s = sample(x as f64 + 0.5, y as f64 + 0.5);
+                        (s.l.map(|v| v as f32), s.t.map(|v| v.clamp(0.0, 1.0) as f32), surface_key(s.surface))
+                    };
                 }
             });
-            both
-        }
+        // Index in `padded` of in-frame pixel (x, y); its neighbours within
+        // `reach` are all in `padded`.
+        let padded_index = |x: usize, y: usize| (y + r) * pw + x + r;
         // In f32, where the samples are: the maxima are the same values, in
         // half the memory.
         let lmax = |v: &[f32; 3]| v.iter().fold(0.0f32, |m, c| m.max(c.abs()));
@@ -1564,30 +1532,6 @@ fn render_channels<const C: usize, const K: usize>(
         // what its window sees, not of its own (tiny) value — the
         // pixel-filter error is an image-space error, and this is the norm in
         // which it is reported (edge_*).
-        let padded_scales: Vec<f32> = window_extreme(
-            &padded.par_iter().map(|p| lmax(&p.0)).collect::<Vec<f32>>(),
-            pw,
-            ph,
-            r,
-            f32::max,
-            &padded_spans,
-        );
-        let mut window_scales = vec![0.0f32; n];
-        window_scales.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
-            let j = padded_index(0, y);
-            row.copy_from_slice(&padded_scales[j..j + w]);
-        });
-        let window_scale = |i: usize| -> f64 { f64::from(window_scales[i]) };
-        // Which surface a centre sample sees, as one key: the mesh, or MAX for
-        // none. Triangles of one mesh are one surface (T and L are continuous
-        // across its creases). A pixel whose window holds one key only has no
-        // silhouette to test.
-        let surface_key = |s: u32| if s == 0 { u32::MAX } else { owner[(s - 1) as usize] };
-        let keys: Vec<u32> = padded.par_iter().map(|p| surface_key(p.2)).collect();
-        let (key_lo, key_hi) = (
-            window_extreme(&keys, pw, ph, r, u32::min, &padded_spans),
-            window_extreme(&keys, pw, ph, r, u32::max, &padded_spans),
-        );
         // The filter's second-order effect (σ²/2)·∇²L (and on T), from the
         // discrete Laplacian of the centre samples.
         let lap = |x: usize, y: usize| -> ([f64; 3], f64) {
@@ -1598,9 +1542,11 @@ fn render_channels<const C: usize, const K: usize>(
             let mut et = 0.0f64;
             for c in 0..3 {
                 let sl: f64 = nb.iter().map(|n| f64::from(n.0[c])).sum::<f64>() - 4.0 * f64::from(me.0[c]);
-                let st: f64 = nb.iter().map(|n| f64::from(n.1[c])).sum::<f64>() - 4.0 * f64::from(me.1[c]);
                 el[c] = half_var * sl.abs();
-                et = et.max(half_var * st.abs());
+                if need_t {
+                    let st: f64 = nb.iter().map(|n| f64::from(n.1[c])).sum::<f64>() - 4.0 * f64::from(me.1[c]);
+                    et = et.max(half_var * st.abs());
+                }
             }
             (el, et)
         };
@@ -1609,17 +1555,18 @@ fn render_channels<const C: usize, const K: usize>(
         // horizon needs nothing).
         let silhouette = |x: usize, y: usize| -> bool {
             let j = padded_index(x, y);
-            if key_lo[j] == key_hi[j] || unlit(x as isize, y as isize) {
+            if unlit(x as isize, y as isize) {
                 return false;
             }
             let me = padded[j];
             for dy in 0..=2 * r {
                 for dx in 0..=2 * r {
                     let other = padded[j + dy * pw + dx - r * pw - r];
-                    if surface_key(me.2) != surface_key(other.2)
+                    if me.2 != other.2
                         && (0..3).any(|c| {
                             let (a, b) = (f64::from(me.0[c]), f64::from(other.0[c]));
-                            (a - b).abs() > tolerance * a.abs().max(b.abs()) || f64::from((me.1[c] - other.1[c]).abs()) > tolerance
+                            (a - b).abs() > tolerance * a.abs().max(b.abs())
+                                || (need_t && f64::from((me.1[c] - other.1[c]).abs()) > tolerance)
                         })
                     {
                         return true;
@@ -1681,141 +1628,209 @@ fn render_channels<const C: usize, const K: usize>(
                 factor * (axis(1) + axis(pw as isize))
             })
         };
-        // Per pixel: the largest channel's in-scatter and step terms and the
-        // transmittance term; the per-channel terms only for the error layer
-        // (not requested, they get one dummy element per row).
-        let mut l_terms = vec![0.0f64; n];
-        let mut t_terms = vec![0.0f64; n];
-        let mut s_terms = vec![0.0f64; n];
-        let (per_channel, channel_chunk) = (if want_error { n } else { h }, if want_error { w } else { 1 });
-        let mut channel_terms = vec![[0.0f64; 3]; per_channel];
-        let mut channel_steps = vec![[0.0f64; 3]; per_channel];
         let largest = |v: &[f64; 3]| v.iter().fold(0.0f64, |m, c| m.max(*c));
-        l_terms
-            .par_chunks_mut(w)
-            .zip(t_terms.par_chunks_mut(w))
-            .zip(s_terms.par_chunks_mut(w))
-            .zip(channel_terms.par_chunks_mut(channel_chunk))
-            .zip(channel_steps.par_chunks_mut(channel_chunk))
-            .enumerate()
-            .for_each(|(y, ((((l_row, t_row), s_row), cl_row), cs_row))| {
-                let (lo, hi) = frame_spans[y];
-                for x in lo..hi {
-                    // Every sample an unlit pixel's terms read is 0.
-                    if unlit(x as isize, y as isize) {
-                        continue;
-                    }
-                    let (el, et) = lap_term(x, y);
-                    let st = step_term(x, y);
-                    (l_row[x], t_row[x], s_row[x]) = (largest(&el), et, largest(&st));
-                    if want_error {
-                        (cl_row[x], cs_row[x]) = (el, st);
-                    }
-                }
-            });
-        if want_error {
-            channel_terms = window_extreme(
-                &channel_terms,
-                w,
-                h,
-                1,
-                |a, b| [a[0].max(b[0]), a[1].max(b[1]), a[2].max(b[2])],
-                &frame_spans,
-            );
-            channel_terms.par_iter_mut().zip(&channel_steps).for_each(|(t, st)| {
-                for c in 0..3 {
-                    t[c] = t[c].max(st[c]);
-                }
-            });
-        }
-        let mut near_terms: Vec<f64> = window_extreme(&l_terms, w, h, 1, f64::max, &frame_spans);
-        near_terms.par_iter_mut().zip(&s_terms).for_each(|(t, s)| *t = t.max(*s));
-        // Classify every pixel: either its centre sample stands (with the
-        // nearby Laplacian terms as its filter error) or it needs the filter integral.
-        let mut flagged = vec![false; n];
-        flagged.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
-            let (lo, hi) = frame_spans[y];
-            for (x, f) in row.iter_mut().enumerate().take(hi).skip(lo) {
-                let i = y * w + x;
-                *f = t_terms[i] > tolerance || near_terms[i] > tolerance * window_scale(i) || silhouette(x, y);
-            }
-        });
-        // The Laplacian stencil sees ±1 px around a centre, the filter window
-        // ±1.5 px: a pixel next to a flagged one may have the feature inside its
-        // window although its own stencil is flat (e.g. the image of a point
-        // light just below a row of zeros), so the flagged set is dilated by one
-        // pixel (8-neighbourhood). (For the in-scatter term the neighbourhood
-        // maximum above does this already; the dilation still carries
-        // silhouettes and the transmittance term.)
-        let mut flagged = window_extreme(&flagged, w, h, 1, |a: bool, b: bool| a | b, &frame_spans);
         // A point light's image: the in-scatter has its 1/r peak there, inside
         // a cone whose apex can be narrower than a pixel, so the centre
         // samples around it can all be 0 (box occluder, 96×54, tolerance 0.1:
         // two pixels were 0 with an estimate of 0 against 5.2e-4). Every pixel
         // whose window holds an image gets the filter integral.
         let radius = filter.radius();
-        for &(px, py) in light_images.iter().filter(|p| p.0.is_finite() && p.1.is_finite()) {
-            let span = |c: f64, n: usize| -> std::ops::Range<usize> {
-                let lo = (c - radius - 0.5).ceil().max(0.0);
-                let hi = (c + radius - 0.5).floor().min(n as f64 - 1.0);
-                if lo > hi { 0..0 } else { lo as usize..hi as usize + 1 }
-            };
-            for y in span(py, h) {
-                for x in span(px, w) {
-                    flagged[y * w + x] = true;
-                }
-            }
+        let light_rects: Vec<(std::ops::Range<usize>, std::ops::Range<usize>)> = light_images
+            .iter()
+            .filter(|p| p.0.is_finite() && p.1.is_finite())
+            .map(|&(px, py)| {
+                let span = |c: f64, n: usize| -> std::ops::Range<usize> {
+                    let lo = (c - radius - 0.5).ceil().max(0.0);
+                    let hi = (c + radius - 0.5).floor().min(n as f64 - 1.0);
+                    if lo > hi { 0..0 } else { lo as usize..hi as usize + 1 }
+                };
+                (span(px, w), span(py, h))
+            })
+            .collect();
+        // Classify every pixel: either its centre sample stands (with the
+        // nearby Laplacian terms as its filter error) or it needs the filter
+        // integral. Per pixel: its Laplacian and step terms (the largest
+        // channel's, and the transmittance's); the largest in-scatter term of
+        // its 3×3 neighbourhood, whose stencils cover the filter's window, is
+        // the filter error charged where the centre sample stands: the
+        // pixel's own term is the error only where ∇²L is nearly constant
+        // across the window (next to a beam's edge, narrow beam, 96×54,
+        // tolerance 0.1, the own term was up to 8× too small, 1.7e-4 against
+        // 2.0e-5, and a pixel whose five samples are all 0 claimed no error
+        // although its window reaches the beam), or the step term if larger.
+        // A pixel is flagged when that exceeds the tolerance of its window's
+        // scale, or the transmittance term the tolerance, or at a silhouette;
+        // then the flags are dilated by one pixel (8-neighbourhood): the
+        // Laplacian stencil sees ±1 px around a centre, the filter window
+        // ±1.5 px, so a pixel next to a flagged one may have the feature
+        // inside its window although its own stencil is flat (for the
+        // in-scatter term the neighbourhood maximum does this already; the
+        // dilation still carries silhouettes and the transmittance term).
+        // Where the centre sample stands, the in-scatter (and each light's)
+        // gets the filter's second-order term (σ²/2)·∇²v from the 5-point
+        // Laplacian, O(σ⁴∇⁴v) left while the estimate keeps the whole term:
+        // with σ²/2 ≤ ¼ px² a convex combination of the five samples (≥ 0); a
+        // wider filter keeps the centre sample, as do the frame's border
+        // pixels (the per-light layers have no samples outside it). The
+        // transmittance layers keep their centre samples (the per-light
+        // surface transmittance is the view transmittance where no surface is
+        // seen, and must stay equal to it there). Where all five in-scatter
+        // samples are 0 the term is 0 in every layer, and the pixel is skipped.
+        //
+        // In bands of rows, each with its halo (the terms of 2 rows either
+        // side, the flags of 1) in small buffers of its own, over the band's
+        // spans only: the same values as whole-image passes, without their
+        // ≈ 37 MB of arrays at 768×432, whose page faults and copies cost
+        // more than the arithmetic. (Narrow beam, 768×432, tolerance 0.3, one
+        // thread: classification 26 → 9.3 ms, with the unlit tiles.)
+        const BAND: usize = 16;
+        let mut window_scales = vec![0.0f32; n];
+        let mut flagged = vec![false; n];
+        let zero = |j: usize| inscatter[j] == [0.0f32; 3];
+        struct BandOut {
+            edges: Vec<usize>,
+            smooth: Vec<usize>,
+            lap_abs: f64,
+            lap_rel: f64,
         }
-        let edges: Vec<usize> = (0..n).filter(|&i| flagged[i]).collect();
-        // The other pixels' filter error: the nearby Laplacian terms, absolute and
-        // relative to the window's scale (maxima over the image), and per
-        // channel in the error layer.
-        let maxima = |i: usize| -> (f64, f64) {
-            if flagged[i] {
-                return (0.0, 0.0);
-            }
-            let (a, m) = (near_terms[i], window_scale(i));
-            (a, if m > 0.0 { a / m } else { 0.0 })
-        };
-        let larger = |a: (f64, f64), b: (f64, f64)| (a.0.max(b.0), a.1.max(b.1));
-        let (lap_abs, lap_rel) = (0..n).into_par_iter().map(maxima).reduce(|| (0.0, 0.0), larger);
-        if want_error {
-            error.par_iter_mut().zip(&channel_terms).zip(&flagged).for_each(|((e, el), &f)| {
-                if !f {
-                    for c in 0..3 {
-                        e[c] += el[c] as f32;
+        let bands: Vec<BandOut> = window_scales
+            .par_chunks_mut(BAND * w)
+            .zip(flagged.par_chunks_mut(BAND * w))
+            .zip(error.par_chunks_mut(if want_error { BAND * w } else { BAND }))
+            .enumerate()
+            .map(|(b, ((scale_rows, flag_rows), err_rows))| {
+                let (y0, y1) = (b * BAND, ((b + 1) * BAND).min(h));
+                // Rows whose terms (ta..tb) and first flags (fa..fb) are needed.
+                let (ta, tb) = (y0.saturating_sub(2), (y1 + 2).min(h));
+                let (fa, fb) = (y0.saturating_sub(1), (y1 + 1).min(h));
+                // The band's buffers hold the columns c0 .. c0 + lw: its
+                // spans and one pixel either side.
+                let (blo, bhi) = frame_spans[ta..tb]
+                    .iter()
+                    .fold((w, 0), |(a, b), &(lo, hi)| if lo < hi { (a.min(lo), b.max(hi)) } else { (a, b) });
+                let c0 = blo.saturating_sub(1).min(w);
+                let lw = (bhi + 1).min(w).saturating_sub(c0);
+                let cells = (tb - ta) * lw;
+                let at = |x: usize, y: usize| (y - ta) * lw + x - c0;
+                // Window scales of the term rows: row maxima of |L| over ±r
+                // (padded rows ta .. tb + 2r), then column maxima.
+                let mut row_max = vec![0.0f32; (tb - ta + 2 * r) * lw];
+                let mut scales = vec![0.0f32; cells];
+                if blo < bhi {
+                    for (py, out) in (ta..tb + 2 * r).zip(row_max.chunks_mut(lw)) {
+                        let prow = &padded[py * pw..(py + 1) * pw];
+                        for x in blo..bhi {
+                            out[x - c0] = prow[x..=x + 2 * r].iter().fold(0.0f32, |m, p| m.max(lmax(&p.0)));
+                        }
+                    }
+                    for (y, out) in (ta..tb).zip(scales.chunks_mut(lw)) {
+                        for x in blo..bhi {
+                            out[x - c0] = (0..=2 * r).fold(0.0f32, |m, k| m.max(row_max[(y - ta + k) * lw + x - c0]));
+                        }
                     }
                 }
-            });
+                // A pixel whose window holds only zeros (and whose
+                // transmittance is not filtered) has no term, no silhouette
+                // and is not flagged: every sample its terms read is in the window.
+                let dark = |x: usize, y: usize| !need_t && scales[at(x, y)] == 0.0;
+                let (mut l_t, mut t_t, mut s_t) = (vec![0.0f64; cells], vec![0.0f64; cells], vec![0.0f64; cells]);
+                let per_channel = if want_error { cells } else { 0 };
+                let (mut c_l, mut c_s) = (vec![[0.0f64; 3]; per_channel], vec![[0.0f64; 3]; per_channel]);
+                for y in ta..tb {
+                    let (lo, hi) = frame_spans[y];
+                    for x in lo..hi {
+                        // Every sample an unlit pixel's terms read is 0.
+                        if unlit(x as isize, y as isize) || dark(x, y) {
+                            continue;
+                        }
+                        let (el, et) = lap_term(x, y);
+                        let st = step_term(x, y);
+                        let k = at(x, y);
+                        (l_t[k], t_t[k], s_t[k]) = (largest(&el), et, largest(&st));
+                        if want_error {
+                            (c_l[k], c_s[k]) = (el, st);
+                        }
+                    }
+                }
+                // The 3×3 neighbourhood within the frame, as term-buffer indices.
+                let around = |x: usize, y: usize| {
+                    let (xa, xb) = (x.saturating_sub(1), (x + 2).min(w));
+                    (y.saturating_sub(1)..(y + 2).min(h)).flat_map(move |yy| (xa..xb).map(move |xx| at(xx, yy)))
+                };
+                let near = |x: usize, y: usize| -> f64 { around(x, y).fold(s_t[at(x, y)], |m, k| m.max(l_t[k])) };
+                let mut first = vec![false; (fb - fa) * lw];
+                let at_first = |x: usize, y: usize| (y - fa) * lw + x - c0;
+                for y in fa..fb {
+                    let (lo, hi) = frame_spans[y];
+                    for x in lo..hi {
+                        if dark(x, y) {
+                            continue;
+                        }
+                        let (k, i) = (at_first(x, y), at(x, y));
+                        first[k] = t_t[i] > tolerance || near(x, y) > tolerance * f64::from(scales[i]) || silhouette(x, y);
+                    }
+                }
+                let mut out = BandOut {
+                    edges: Vec::new(),
+                    smooth: Vec::new(),
+                    lap_abs: 0.0,
+                    lap_rel: 0.0,
+                };
+                for y in y0..y1 {
+                    let (lo, hi) = frame_spans[y];
+                    let row = (y - y0) * w;
+                    for x in lo..hi {
+                        let (xa, xb) = (x.saturating_sub(1), (x + 2).min(w));
+                        flag_rows[row + x] = (y.saturating_sub(1)..(y + 2).min(h)).any(|yy| (xa..xb).any(|xx| first[at_first(xx, yy)]));
+                        scale_rows[row + x] = scales[at(x, y)];
+                    }
+                    for (xs, ys) in &light_rects {
+                        if ys.contains(&y) {
+                            flag_rows[row + xs.start..row + xs.end].fill(true);
+                        }
+                    }
+                    for x in 0..w {
+                        let i = y * w + x;
+                        if flag_rows[row + x] {
+                            out.edges.push(i);
+                            continue;
+                        }
+                        if !(lo..hi).contains(&x) {
+                            continue;
+                        }
+                        // The other pixels' filter error: the nearby terms,
+                        // absolute and relative to the window's scale.
+                        let (a, m) = (near(x, y), f64::from(scale_rows[row + x]));
+                        out.lap_abs = out.lap_abs.max(a);
+                        out.lap_rel = out.lap_rel.max(if m > 0.0 { a / m } else { 0.0 });
+                        if want_error {
+                            let e = &mut err_rows[row + x];
+                            let step = c_s[at(x, y)];
+                            for c in 0..3 {
+                                let t = around(x, y).fold(0.0f64, |m, k| m.max(c_l[k][c])).max(step[c]);
+                                e[c] += t as f32;
+                            }
+                        }
+                        if !uncorrected(x, y) && ![i, i - 1, i + 1, i - w, i + w].iter().all(|&j| zero(j)) {
+                            out.smooth.push(i);
+                        }
+                    }
+                }
+                out
+            })
+            .collect();
+        let window_scale = |i: usize| -> f64 { f64::from(window_scales[i]) };
+        let mut edges: Vec<usize> = Vec::new();
+        let mut smooth: Vec<usize> = Vec::new();
+        let (mut lap_abs, mut lap_rel) = (0.0f64, 0.0f64);
+        for band in bands {
+            edges.extend(band.edges);
+            smooth.extend(band.smooth);
+            lap_abs = lap_abs.max(band.lap_abs);
+            lap_rel = lap_rel.max(band.lap_rel);
         }
         stats.max_abs += lap_abs;
         stats.max_rel += lap_rel;
-        // Where the centre sample stands for the filtered pixel, the filter's
-        // second-order term (σ²/2)·∇²v is added to it, from the 5-point
-        // Laplacian of the centre samples, in the in-scatter layers (all
-        // lights and each light alike, so `inscatter` stays the sum of the
-        // per-light layers). What is left is O(σ⁴∇⁴v), while the error
-        // estimate keeps the whole term's size. With σ²/2 ≤ ¼ px² the result
-        // is a convex combination of the five samples (no clamp needed: it
-        // stays ≥ 0); a wider filter keeps the centre sample, as do the
-        // frame's border pixels (the per-light layers have no samples outside
-        // it). The transmittance layers keep their centre samples: the
-        // per-light surface transmittance is the view transmittance where no
-        // surface is seen, and must stay equal to it there. Where all five
-        // in-scatter samples are 0 the term is 0 in every layer (each light's
-        // in-scatter is ≥ 0 and they sum to at most the total), and the pixel
-        // is skipped.
-        let zero = |j: usize| inscatter[j] == [0.0f32; 3];
-        let flagged_ref = &flagged;
-        let smooth: Vec<usize> = (0..h)
-            .into_par_iter()
-            .flat_map_iter(|y| {
-                (0..w).filter_map(move |x| {
-                    let i = y * w + x;
-                    (!flagged_ref[i] && !uncorrected(x, y) && ![i, i - 1, i + 1, i - w, i + w].iter().all(|&j| zero(j))).then_some(i)
-                })
-            })
-            .collect();
         t = report.time("pixel_filter_classify", t);
         let with_filter_term =
             |img: &[[f32; 3]]| -> Vec<[f32; 3]> { smooth.iter().map(|&i| second_order_filter_term(img, w, i, half_var)).collect() };
