@@ -518,6 +518,19 @@ fn random_rays(rng: &mut Rng, n: usize, light: DVec3, axis: DVec3) -> Vec<(DVec3
 
 #[test]
 fn random_spots_with_occluders_error_estimate_is_honest() {
+    random_spots_with_occluders(1e-4);
+}
+
+/// At loose tolerances a window of a Blender spot's in-scatter starts with
+/// three nodes (G3, estimate |G3 − G1|) and most windows stop there: the
+/// estimate stays honest on the same random scenes.
+#[test]
+fn random_spots_error_estimate_is_honest_at_loose_tolerances() {
+    random_spots_with_occluders(0.05);
+    random_spots_with_occluders(0.3);
+}
+
+fn random_spots_with_occluders(tol: f64) {
     let mut rng = Rng(3);
     let phases = [
         Phase::Iso,
@@ -554,7 +567,7 @@ fn random_spots_with_occluders_error_estimate_is_honest() {
             nishita_q: None,
         };
         let rays = random_rays(&mut rng, 40, light_pos, axis);
-        let (n, h, w, e) = run_case(&case, &rays, 1e-4);
+        let (n, h, w, e) = run_case(&case, &rays, tol);
         total += n;
         honest += h;
         within += w;
@@ -562,7 +575,7 @@ fn random_spots_with_occluders_error_estimate_is_honest() {
     }
     let frac = honest as f64 / total as f64;
     println!(
-        "{total} rays: error within the estimate on {honest} ({:.2} %), within tolerance on {within}; worst rel {worst:.2e}",
+        "tolerance {tol:e}, {total} rays: error within the estimate on {honest} ({:.2} %), within tolerance on {within}; worst rel {worst:.2e}",
         100.0 * frac
     );
     assert!(frac >= 0.99, "error estimate honest on only {:.2} % of rays", 100.0 * frac);

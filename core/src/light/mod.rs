@@ -548,6 +548,18 @@ impl<const C: usize> PointSource<C> {
         self.shape.eval(cos_theta, 0.0)
     }
 
+    /// Whether the factor is smooth and monotone in θ between the cones of
+    /// [`Self::kinks`]: Blender's point and spot lamps (constant, or a
+    /// smoothstep across the blend), without an IES profile. Then along a
+    /// view ray, between the cuts of the in-scatter integral, it has no
+    /// feature narrower than the piece, and a low-order rule that agrees
+    /// with the next lower one can be trusted. (Not so for tables and IES
+    /// cells, periodic patterns or a sharp focus lobe, which can peak between
+    /// three nodes.)
+    pub fn smooth_between_kinks(&self) -> bool {
+        self.ies.is_none() && matches!(self.shape, Shape::Isotropic | Shape::CyclesSpot { .. })
+    }
+
     /// The distinct cos θ values where the factor has kinks or jumps.
     pub fn kinks(&self) -> Kinks {
         let mut k = self.shape.kinks();

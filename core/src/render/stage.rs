@@ -51,7 +51,7 @@ use crate::light::shadow::{IndexedMesh, Projector, ShadowWedges};
 use crate::light::window::WindowSource;
 use crate::light::{PointSource, ray_cone_intervals, ray_elliptic_cone_intervals};
 use crate::medium::{PreparedMedium, ViewRay};
-use crate::numeric::{integrate_adaptive, integrate_adaptive_nested};
+use crate::numeric::{integrate_adaptive, integrate_adaptive_nested, integrate_adaptive_nested_from_g3};
 use glam::DVec3;
 use rayon::prelude::*;
 use std::f64::consts::FRAC_PI_2;
@@ -183,8 +183,18 @@ fn media_support<const C: usize>(ray: &ViewRay, media: &[PreparedMedium<C>], out
 /// (bisecting) at tolerances ≥ 1e-5 and G7–K15 below: 4-spot 1080p render
 /// 0.93 s either way at 1e-3, 0.98 → 0.95 s at 1e-5, 1.14 → 0.97 s at 1e-6.
 #[inline]
-fn integrate_window<const C: usize>(f: impl FnMut(f64) -> [f64; C], a: f64, b: f64, tolerance: f64) -> crate::numeric::Integral<C> {
-    integrate_adaptive_nested(f, a, b, 1e-300, tolerance, 400)
+fn integrate_window<const C: usize>(
+    f: impl FnMut(f64) -> [f64; C],
+    a: f64,
+    b: f64,
+    tolerance: f64,
+    smooth: bool,
+) -> crate::numeric::Integral<C> {
+    if smooth {
+        integrate_adaptive_nested_from_g3(f, a, b, 1e-300, tolerance, 400)
+    } else {
+        integrate_adaptive_nested(f, a, b, 1e-300, tolerance, 400)
+    }
 }
 
 /// Homogeneous media on one view ray and one point light, as constants.
@@ -723,14 +733,21 @@ impl<const C: usize> StageLights<C> {
                 bounds.sort_by(f64::total_cmp);
             }
             let fast = plain.as_ref().is_some_and(|p| a >= p.lo && b <= p.hi);
+            // Homogeneous media and an analytic shape: every window is smooth
+            // (its cuts are at the kinks, the closest approach, the graded
+            // mesh and the optical-depth levels), and a window starts with
+            // three nodes (G3, estimate |G3 − G1|): at loose tolerances most
+            // need no more (narrow beam, 768×432: 7.0 → 3.2 evaluations per
+            // window). Otherwise K7 first.
+            let smooth = fast && l.smooth_between_kinks();
             for wdw in bounds.windows(2) {
                 if wdw[1] <= wdw[0] {
                     continue;
                 }
                 let r = if fast {
-                    integrate_window(plain_integrand, wdw[0], wdw[1], tolerance)
+                    integrate_window(plain_integrand, wdw[0], wdw[1], tolerance, smooth)
                 } else {
-                    integrate_window(integrand, wdw[0], wdw[1], tolerance)
+                    integrate_window(integrand, wdw[0], wdw[1], tolerance, false)
                 };
                 add_integral(&mut total, out, &r);
             }
