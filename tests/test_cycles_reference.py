@@ -146,3 +146,41 @@ def test_unlit_tiles_are_left_out_without_changing_a_pixel(name: str) -> None:
     # Asking for a layer that needs every ray (depth) traces every pixel.
     _, with_depth = _render_layers(scene, layers=["inscatter", "depth"], tolerance=0.05)
     assert with_depth["stats"]["pixels_unlit"] == 0
+
+
+@pytest.mark.parametrize(
+    "case", ["half_degree_beam", "beam_away_from_camera", "camera_beside_the_apex", "wide_spot_179deg"]
+)
+def test_unlit_tiles_on_extreme_beams(case: str) -> None:
+    """The unlit-tile test on purpose at its edges: a 0.5° beam (a sliver of
+    lit tiles), a beam pointing away from a camera behind the light (its cone
+    still in view), the eye 1 mm beside the apex (the cone fills half the
+    view), and a 179° spot (wider than a hemisphere: no tile can be unlit).
+    Every case gives the same layers bit for bit with every pixel traced."""
+    scene = json.loads((DATA / "narrow_beam_5deg.json").read_text())
+    spot = scene["lights"][0]
+    if case == "half_degree_beam":
+        spot["spot_size_deg"] = 0.5
+    elif case == "beam_away_from_camera":
+        scene["camera"]["position"] = [-9.0, -4.0, 6.5]
+        scene["camera"]["orientation"]["look_at"]["target"] = [-9.0, 4.0, 6.0]
+        spot["orientation"]["look_at"]["target"] = [-9.0, 30.0, 5.0]
+    elif case == "camera_beside_the_apex":
+        scene["camera"]["position"] = [-9.0, 1.999, 6.0]
+        scene["camera"]["orientation"]["look_at"]["target"] = [-9.0, 12.0, 6.0]
+    elif case == "wide_spot_179deg":
+        spot["spot_size_deg"] = 179.0
+    layers = ["inscatter", "error"]
+    skipped, report = _render_layers(scene, layers=layers, tolerance=0.05)
+    traced, _ = _render_layers(scene, layers=layers, tolerance=0.05, skip_unlit_tiles=False)
+    for k in skipped:
+        assert np.isfinite(skipped[k]).all(), k
+        assert np.array_equal(skipped[k], traced[k]), k
+    unlit = report["stats"]["pixels_unlit"]
+    lit = int((skipped["inscatter"].max(-1) > 0).sum())
+    height, width = skipped["inscatter"].shape[:2]
+    print(f"{case}: {unlit} unlit pixels, {lit} with in-scatter, of {height * width}")
+    if case == "wide_spot_179deg":
+        assert unlit == 0
+    else:
+        assert unlit > 0 and lit > 0
