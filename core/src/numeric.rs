@@ -12,7 +12,10 @@
 //! and [`integrate_adaptive_nested`] on the nested Gauss–Kronrod–Patterson
 //! panels G3 ⊂ K7 ⊂ P15 ([`NestedPanel`]): 7 points per panel where that
 //! meets the tolerance, 15 before a panel is split (stage lights, the sky),
-//! where one 15-point panel would often be far more accurate than asked for.
+//! where one 15-point panel would often be far more accurate than asked for;
+//! [`integrate_adaptive_nested_from_g3`] starts one step lower, G1 ⊂ G3 (3
+//! points), for integrands known to be smooth on each piece (Blender's lamps
+//! in homogeneous media).
 //! The `quadrature` crate (double-exponential) is used in tests as a second,
 //! independent reference; it returns no per-call error estimate we can trust
 //! for vector-valued integrands, which is why this one is written here.

@@ -27,10 +27,13 @@
 //! nested Gauss–Kronrod–Patterson panels, K7 extended to P15 before a panel
 //! is split (between the cuts the integrand in `u` is smooth, and one
 //! 15-point panel would typically be many orders of magnitude more accurate
-//! than asked). All contributions are positive, so per-segment relative
-//! tolerances bound the pixel's relative error; the estimates (the
-//! lower-order rule's error, |K7 − G3| or |P15 − K7|) are summed into the
-//! pixel's error.
+//! than asked). For Blender's point and spot lamps in homogeneous media a
+//! panel starts one step lower, at G3 with the midpoint rule's error
+//! |G3 − G1| ([`crate::light::PointSource::smooth_between_kinks`]): at loose
+//! tolerances most windows stop there. All contributions are positive, so
+//! per-segment relative tolerances bound the pixel's relative error; the
+//! estimates (the lower-order rule's error, |G3 − G1|, |K7 − G3| or
+//! |P15 − K7|) are summed into the pixel's error.
 //!
 //! **Homogeneous media.** When every medium is homogeneous (world, or boxes
 //! holding the light), the integrand follows from the substitution's geometry
@@ -43,8 +46,10 @@
 //! from `x − x_L` as in the general case).
 //!
 //! **Left out.** A ray that crosses no light's illumination volume inside a
-//! medium evaluates no integral; a light whose volume misses every view ray
-//! is reported as such; occluders outside a light's volume cast nothing.
+//! medium evaluates no integral; a tile of rays that provably misses every
+//! volume is not traced when only in-scatter is asked for
+//! ([`super::unlit`]); a light whose volume misses every view ray is
+//! reported as such; occluders outside a light's volume cast nothing.
 
 use crate::geometry::bvh::Bvh;
 use crate::light::shadow::{IndexedMesh, Projector, ShadowWedges};
