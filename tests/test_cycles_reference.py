@@ -149,13 +149,15 @@ def test_unlit_tiles_are_left_out_without_changing_a_pixel(name: str) -> None:
 
 
 @pytest.mark.parametrize(
-    "case", ["half_degree_beam", "beam_away_from_camera", "camera_beside_the_apex", "wide_spot_179deg"]
+    "case",
+    ["half_degree_beam", "beam_away_from_camera", "camera_beside_the_apex", "wide_spot_179deg", "window_shaft"],
 )
 def test_unlit_tiles_on_extreme_beams(case: str) -> None:
     """The unlit-tile test on purpose at its edges: a 0.5° beam (a sliver of
     lit tiles), a beam pointing away from a camera behind the light (its cone
     still in view), the eye 1 mm beside the apex (the cone fills half the
-    view), and a 179° spot (wider than a hemisphere: no tile can be unlit).
+    view), a 179° spot (wider than a hemisphere: no tile can be unlit), and a
+    window light's shaft beside the beam (its prism separated like a cone).
     Every case gives the same layers bit for bit with every pixel traced."""
     scene = json.loads((DATA / "narrow_beam_5deg.json").read_text())
     spot = scene["lights"][0]
@@ -170,6 +172,17 @@ def test_unlit_tiles_on_extreme_beams(case: str) -> None:
         scene["camera"]["orientation"]["look_at"]["target"] = [-9.0, 12.0, 6.0]
     elif case == "wide_spot_179deg":
         spot["spot_size_deg"] = 179.0
+    elif case == "window_shaft":
+        # Sunlight through a 2 m skylight beside the spot: its prism is tested too.
+        scene["lights"].append(
+            {
+                "type": "window",
+                "name": "skylight",
+                "direction_to_light": [0.3, 0.2, 1.0],
+                "irradiance_w_m2": 50,
+                "aperture": [[-1, -1, 6], [1, -1, 6], [1, 1, 6], [-1, 1, 6]],
+            }
+        )
     layers = ["inscatter", "error"]
     skipped, report = _render_layers(scene, layers=layers, tolerance=0.05)
     traced, _ = _render_layers(scene, layers=layers, tolerance=0.05, skip_unlit_tiles=False)

@@ -64,6 +64,13 @@ impl<const C: usize> WindowSource<C> {
         }
     }
 
+    /// The window's corners in world space, m. The lit region is the prism
+    /// swept from the polygon away from the light, inside the convex hull of
+    /// these corners and the direction `−to_light`.
+    pub fn corners(&self) -> Vec<DVec3> {
+        self.polygon.iter().map(|p| self.origin + self.u * p.x + self.v * p.y).collect()
+    }
+
     /// Distance from `x` to the window plane along `ℓ` (negative: `x` is on the light's side).
     #[inline]
     pub fn distance_to_window(&self, x: DVec3) -> f64 {

@@ -1312,24 +1312,33 @@ fn render_channels<const C: usize, const K: usize>(
     // step terms ±2, the flags' dilation ±1) and its filter window, within
     // the ring.
     let unlit_grid: Option<(usize, Vec<bool>)> = {
-        let cones: Option<Vec<unlit::Cone>> = stage_lights
+        let cones: Option<Vec<unlit::Volume>> = stage_lights
             .points
             .iter()
             .map(|p| {
                 let c = p.light.cos_reach;
-                (c > 0.0).then(|| unlit::Cone {
-                    apex: p.light.position,
-                    axis: p.light.frame.axis,
-                    half_angle: c.min(1.0).acos(),
+                (c > 0.0).then(|| {
+                    unlit::Volume::Cone(unlit::Cone {
+                        apex: p.light.position,
+                        axis: p.light.frame.axis,
+                        half_angle: c.min(1.0).acos(),
+                    })
                 })
             })
             .collect();
+        let prisms = stage_lights.windows.iter().map(|w| {
+            unlit::Volume::Prism(unlit::Prism {
+                corners: w.light.corners(),
+                recession: -w.light.to_light,
+            })
+        });
         let perspective = matches!(scene.camera, crate::scene::Camera::Perspective(_));
-        let only_stage_light = lights.suns.is_empty() && lights.ambient.iter().all(|a| *a == 0.0) && stage_lights.windows.is_empty();
+        let only_stage_light = lights.suns.is_empty() && lights.ambient.iter().all(|a| *a == 0.0);
         match cones {
-            Some(cones) if scene.output.skip_unlit_tiles && !need_ray && perspective && only_stage_light => {
+            Some(mut volumes) if scene.output.skip_unlit_tiles && !need_ray && perspective && only_stage_light => {
+                volumes.extend(prisms);
                 let read = if ring > 0 { ring.max(2) + 1 } else { 0 };
-                Some(unlit::unlit_tiles(&cam, &cones, ring, read as f64))
+                Some(unlit::unlit_tiles(&cam, &volumes, ring, read as f64))
             }
             _ => None,
         }
@@ -1911,14 +1920,14 @@ fn render_channels<const C: usize, const K: usize>(
         report.plan.left_out(
             format!("view rays of {} pixels", stats.unlit),
             format!(
-                "unlit: in tiles of {0}×{0} px whose rays, padded by every pixel their results read, miss every light's illumination volume (a separating plane through the eye, per light); their in-scatter is exactly 0 and no requested layer needs the ray",
+                "unlit: in tiles of {0}×{0} px whose rays, padded by every pixel their results read, miss every light's illumination volume (a separating plane through the eye, per light: spot cones, window prisms); their in-scatter is exactly 0 and no requested layer needs the ray",
                 unlit::TILE
             ),
         );
     } else if unlit_grid.is_none() && !need_ray && scene.output.skip_unlit_tiles && !stage_lights.is_empty() {
         report.plan.computed(
             "every pixel's view ray",
-            "no tile is provably unlit: a sun, ambient light, window light or a light whose volume is not a cone narrower than a hemisphere reaches every ray",
+            "no tile is provably unlit: a sun, ambient light or a light whose volume is not a cone narrower than a hemisphere reaches every ray",
         );
     }
     report.stats.non_finite_pixels = stats.non_finite;
