@@ -1740,8 +1740,10 @@ fn render_channels<const C: usize, const K: usize>(
                 }
                 // A pixel whose window holds only zeros (and whose
                 // transmittance is not filtered) has no term, no silhouette
-                // and is not flagged: every sample its terms read is in the window.
-                let dark = |x: usize, y: usize| !need_t && scales[at(x, y)] == 0.0;
+                // and is not flagged: every sample its terms and its
+                // neighbours' terms read is within ±2 px, inside the window
+                // when it reaches 2 px (a narrower filter gets no shortcut).
+                let dark = |x: usize, y: usize| !need_t && r >= 2 && scales[at(x, y)] == 0.0;
                 let (mut l_t, mut t_t, mut s_t) = (vec![0.0f64; cells], vec![0.0f64; cells], vec![0.0f64; cells]);
                 let per_channel = if want_error { cells } else { 0 };
                 let (mut c_l, mut c_s) = (vec![[0.0f64; 3]; per_channel], vec![[0.0f64; 3]; per_channel]);
@@ -1766,8 +1768,9 @@ fn render_channels<const C: usize, const K: usize>(
                     let (xa, xb) = (x.saturating_sub(1), (x + 2).min(w));
                     (y.saturating_sub(1)..(y + 2).min(h)).flat_map(move |yy| (xa..xb).map(move |xx| at(xx, yy)))
                 };
-                let near = |x: usize, y: usize| -> f64 { around(x, y).fold(s_t[at(x, y)], |m, k| m.max(l_t[k])) };
+                // Rows fa..fb: the nearby terms (kept for the estimate) and the first flags.
                 let mut first = vec![false; (fb - fa) * lw];
+                let mut near = vec![0.0f64; (fb - fa) * lw];
                 let at_first = |x: usize, y: usize| (y - fa) * lw + x - c0;
                 for y in fa..fb {
                     let (lo, hi) = frame_spans[y];
@@ -1776,7 +1779,8 @@ fn render_channels<const C: usize, const K: usize>(
                             continue;
                         }
                         let (k, i) = (at_first(x, y), at(x, y));
-                        first[k] = t_t[i] > tolerance || near(x, y) > tolerance * f64::from(scales[i]) || silhouette(x, y);
+                        near[k] = around(x, y).fold(s_t[i], |m, j| m.max(l_t[j]));
+                        first[k] = t_t[i] > tolerance || near[k] > tolerance * f64::from(scales[i]) || silhouette(x, y);
                     }
                 }
                 let mut out = BandOut {
@@ -1809,7 +1813,7 @@ fn render_channels<const C: usize, const K: usize>(
                         }
                         // The other pixels' filter error: the nearby terms,
                         // absolute and relative to the window's scale.
-                        let (a, m) = (near(x, y), f64::from(scale_rows[row + x]));
+                        let (a, m) = (near[at_first(x, y)], f64::from(scale_rows[row + x]));
                         out.lap_abs = out.lap_abs.max(a);
                         out.lap_rel = out.lap_rel.max(if m > 0.0 { a / m } else { 0.0 });
                         if want_error {
