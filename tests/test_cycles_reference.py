@@ -197,3 +197,24 @@ def test_unlit_tiles_on_extreme_beams(case: str) -> None:
         assert unlit == 0
     else:
         assert unlit > 0 and lit > 0
+
+
+@pytest.mark.parametrize("width_px", [0.8, 1.5, 2.5])
+def test_requesting_transmittance_does_not_change_the_inscatter(width_px: float) -> None:
+    """Without surfaces, and with the view transmittance smooth, the in-scatter
+    layer must not depend on whether the transmittance layer is requested:
+    in-scatter-only renders hold T at 1, skip unlit tiles and take the
+    classification's shortcut for all-zero windows, the others do none of
+    that. (At width 0.8 px that shortcut once left 189 instead of 722 pixels
+    filtered: its neighbours' terms read ±2 px, outside a 1 px window.)"""
+    scene = json.loads((DATA / "narrow_beam_5deg.json").read_text())
+    scene["meshes"] = []
+    scene["camera"]["clip_end_m"] = 40.0
+    pixel_filter = {"type": "blackman_harris", "width_px": width_px}
+    only, only_report = _render_layers(scene, layers=["inscatter"], tolerance=0.1, pixel_filter=pixel_filter)
+    both, both_report = _render_layers(
+        scene, layers=["inscatter", "transmittance"], tolerance=0.1, pixel_filter=pixel_filter
+    )
+    assert only_report["stats"]["pixels_unlit"] > 0 and both_report["stats"]["pixels_unlit"] == 0
+    assert only_report["error"]["edge_pixels"] == both_report["error"]["edge_pixels"]
+    assert np.array_equal(only["inscatter"], both["inscatter"])
