@@ -1694,7 +1694,6 @@ fn render_channels<const C: usize, const K: usize>(
         // thread: classification 26 → 9.3 ms, with the unlit tiles.)
         const BAND: usize = 16;
         let mut window_scales = vec![0.0f32; n];
-        let mut flagged = vec![false; n];
         let zero = |j: usize| inscatter[j] == [0.0f32; 3];
         struct BandOut {
             edges: Vec<usize>,
@@ -1704,11 +1703,12 @@ fn render_channels<const C: usize, const K: usize>(
         }
         let bands: Vec<BandOut> = window_scales
             .par_chunks_mut(BAND * w)
-            .zip(flagged.par_chunks_mut(BAND * w))
             .zip(error.par_chunks_mut(if want_error { BAND * w } else { BAND }))
             .enumerate()
-            .map(|(b, ((scale_rows, flag_rows), err_rows))| {
+            .map(|(b, (scale_rows, err_rows))| {
                 let (y0, y1) = (b * BAND, ((b + 1) * BAND).min(h));
+                // The band's final flags; the flagged pixels leave as `edges`.
+                let mut flag_rows = vec![false; (y1 - y0) * w];
                 // Rows whose terms (ta..tb) and first flags (fa..fb) are needed.
                 let (ta, tb) = (y0.saturating_sub(2), (y1 + 2).min(h));
                 let (fa, fb) = (y0.saturating_sub(1), (y1 + 1).min(h));

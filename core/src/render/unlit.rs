@@ -186,29 +186,46 @@ pub fn unlit_tiles(cam: &CameraRays, volumes: &[Volume], pad: usize, reach: f64)
 mod tests {
     use super::*;
 
-    /// Brute force: does any ray through the rectangle's interior (a dense
-    /// grid of directions) come within the cone?
-    fn any_ray_hits(eye: DVec3, corners: &[DVec3; 4], cone: &Cone) -> bool {
+    /// A uniform number in [0, 1) from a xorshift64 state.
+    fn uniform(state: &mut u64) -> f64 {
+        *state ^= *state << 13;
+        *state ^= *state >> 7;
+        *state ^= *state << 17;
+        (*state >> 11) as f64 / (1u64 << 53) as f64
+    }
+
+    /// Unit directions to the corners of a square of half-size `size` across
+    /// `centre` (unit), in order around it.
+    fn square_pyramid(centre: DVec3, size: f64) -> [DVec3; 4] {
+        let side = centre.any_orthonormal_vector();
+        let up = centre.cross(side);
+        [(-1.0, -1.0), (1.0, -1.0), (1.0, 1.0), (-1.0, 1.0)].map(|(a, b)| (centre + (side * a + up * b) * size).normalize())
+    }
+
+    /// A dense grid of 31 × 31 unit directions across the pyramid, edges included.
+    fn fan(corners: &[DVec3; 4]) -> impl Iterator<Item = DVec3> + '_ {
         let n = 30;
-        for i in 0..=n {
-            for j in 0..=n {
+        (0..=n).flat_map(move |i| {
+            (0..=n).map(move |j| {
                 let (u, v) = (i as f64 / n as f64, j as f64 / n as f64);
                 let top = corners[0] * (1.0 - u) + corners[1] * u;
                 let bottom = corners[3] * (1.0 - u) + corners[2] * u;
-                let d = (top * (1.0 - v) + bottom * v).normalize();
-                // Closest approach in angle: march along the ray.
-                for k in 0..300 {
-                    let t = 0.05 * 1.03f64.powi(k) - 0.05;
-                    let x = eye + d * t;
-                    let w = x - cone.apex;
-                    let len = w.length();
-                    if len == 0.0 || w.dot(cone.axis) >= len * cone.half_angle.cos() {
-                        return true;
-                    }
-                }
-            }
-        }
-        false
+                (top * (1.0 - v) + bottom * v).normalize()
+            })
+        })
+    }
+
+    /// Brute force: does any ray of the fan come within the cone?
+    fn any_ray_hits(eye: DVec3, corners: &[DVec3; 4], cone: &Cone) -> bool {
+        fan(corners).any(|d| {
+            // Closest approach in angle: march along the ray.
+            (0..300).any(|k| {
+                let t = 0.05 * 1.03f64.powi(k) - 0.05;
+                let w = eye + d * t - cone.apex;
+                let len = w.length();
+                len == 0.0 || w.dot(cone.axis) >= len * cone.half_angle.cos()
+            })
+        })
     }
 
     #[test]
@@ -217,21 +234,12 @@ mod tests {
         // of a dense fan hits; and a pyramid pointing away from a narrow cone
         // whose apex is behind it is proven.
         let mut state = 0x2545_f491_4f6c_dd1du64;
-        let mut rnd = || {
-            state ^= state << 13;
-            state ^= state >> 7;
-            state ^= state << 17;
-            (state >> 11) as f64 / (1u64 << 53) as f64
-        };
+        let mut rnd = || uniform(&mut state);
         let mut proven = 0;
         for _ in 0..400 {
             let eye = DVec3::new(rnd() - 0.5, rnd() - 0.5, rnd() - 0.5);
             let centre = DVec3::new(rnd() - 0.5, rnd() - 0.5, rnd() - 0.5).normalize();
-            let side = centre.any_orthonormal_vector();
-            let up = centre.cross(side);
-            let size = 0.02 + 0.2 * rnd();
-            let corners =
-                [(-1.0, -1.0), (1.0, -1.0), (1.0, 1.0), (-1.0, 1.0)].map(|(a, b)| (centre + (side * a + up * b) * size).normalize());
+            let corners = square_pyramid(centre, 0.02 + 0.2 * rnd());
             let cone = Cone {
                 apex: eye + DVec3::new(rnd() - 0.5, rnd() - 0.5, rnd() - 0.5) * 8.0,
                 axis: DVec3::new(rnd() - 0.5, rnd() - 0.5, rnd() - 0.5).normalize(),
@@ -284,21 +292,12 @@ mod tests {
         // own window geometry); some tiles are proven.
         use crate::light::window::WindowSource;
         let mut state = 0x9e37_79b9_7f4a_7c15u64;
-        let mut rnd = || {
-            state ^= state << 13;
-            state ^= state >> 7;
-            state ^= state << 17;
-            (state >> 11) as f64 / (1u64 << 53) as f64
-        };
+        let mut rnd = || uniform(&mut state);
         let (mut proven, mut tried) = (0, 0);
         for _ in 0..300 {
             let eye = DVec3::ZERO;
             let centre = DVec3::new(rnd() - 0.5, rnd() - 0.5, -1.0).normalize();
-            let side = centre.any_orthonormal_vector();
-            let up = centre.cross(side);
-            let size = 0.02 + 0.1 * rnd();
-            let corners =
-                [(-1.0, -1.0), (1.0, -1.0), (1.0, 1.0), (-1.0, 1.0)].map(|(a, b)| (centre + (side * a + up * b) * size).normalize());
+            let corners = square_pyramid(centre, 0.02 + 0.1 * rnd());
             let c = DVec3::new(rnd() - 0.5, rnd() - 0.5, rnd() - 0.5) * 10.0;
             let (a, b) = (
                 DVec3::new(rnd(), rnd(), rnd()).normalize(),
@@ -320,15 +319,9 @@ mod tests {
             if pyramid_misses_prism(eye, &corners, &prism) {
                 proven += 1;
                 let mut out = Vec::new();
-                for i in 0..=30 {
-                    for j in 0..=30 {
-                        let (u, v) = (i as f64 / 30.0, j as f64 / 30.0);
-                        let top = corners[0] * (1.0 - u) + corners[1] * u;
-                        let bottom = corners[3] * (1.0 - u) + corners[2] * u;
-                        let d = (top * (1.0 - v) + bottom * v).normalize();
-                        w.intervals(eye, d, 0.0, 1e4, &mut out);
-                        assert!(out.is_empty(), "ray {d} hits the prism: {out:?}");
-                    }
+                for d in fan(&corners) {
+                    w.intervals(eye, d, 0.0, 1e4, &mut out);
+                    assert!(out.is_empty(), "ray {d} hits the prism: {out:?}");
                 }
             }
         }
