@@ -162,23 +162,37 @@ pub fn unlit_tiles(cam: &CameraRays, volumes: &[Volume], pad: usize, reach: f64)
     let (pw, ph) = (cam.width + 2 * pad, cam.height + 2 * pad);
     let (cols, rows) = (pw.div_ceil(TILE), ph.div_ceil(TILE));
     let margin = reach + 1.0;
-    let flags = (0..rows * cols)
-        .map(|t| {
-            let (tx, ty) = (t % cols, t / cols);
-            // The tile's pixels span [x0, x1) × [y0, y1) in image coordinates.
-            let x0 = (tx * TILE) as f64 - pad as f64;
-            let y0 = (ty * TILE) as f64 - pad as f64;
-            let (x1, y1) = (x0 + TILE as f64, y0 + TILE as f64);
-            let (xa, xb, ya, yb) = (x0 - margin, x1 + margin, y0 - margin, y1 + margin);
-            let corners = [
-                cam.direction(xa, ya),
-                cam.direction(xb, ya),
-                cam.direction(xb, yb),
-                cam.direction(xa, yb),
-            ];
-            volumes.iter().all(|v| v.missed_by(cam.position, &corners))
-        })
-        .collect();
+    // Whether the rays of tiles [tx0, tx1) × [ty0, ty1), padded, miss every volume.
+    let missed = |tx0: usize, ty0: usize, tx1: usize, ty1: usize| {
+        // The tiles' pixels span [x0, x1) × [y0, y1) in image coordinates.
+        let x0 = (tx0 * TILE) as f64 - pad as f64;
+        let y0 = (ty0 * TILE) as f64 - pad as f64;
+        let (x1, y1) = ((tx1 * TILE) as f64 - pad as f64, (ty1 * TILE) as f64 - pad as f64);
+        let (xa, xb, ya, yb) = (x0 - margin, x1 + margin, y0 - margin, y1 + margin);
+        let corners = [
+            cam.direction(xa, ya),
+            cam.direction(xb, ya),
+            cam.direction(xb, yb),
+            cam.direction(xa, yb),
+        ];
+        volumes.iter().all(|v| v.missed_by(cam.position, &corners))
+    };
+    // Blocks of BLOCK × BLOCK tiles first: a plane that separates a block's
+    // pyramid separates each of its tiles' (a sub-pyramid), so a missed
+    // block settles all its tiles with one test; the others test each tile.
+    const BLOCK: usize = 8;
+    let mut flags = vec![false; rows * cols];
+    for by in (0..rows).step_by(BLOCK) {
+        for bx in (0..cols).step_by(BLOCK) {
+            let (bx1, by1) = ((bx + BLOCK).min(cols), (by + BLOCK).min(rows));
+            let all = missed(bx, by, bx1, by1);
+            for ty in by..by1 {
+                for tx in bx..bx1 {
+                    flags[ty * cols + tx] = all || missed(tx, ty, tx + 1, ty + 1);
+                }
+            }
+        }
+    }
     (cols, flags)
 }
 
