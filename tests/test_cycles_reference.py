@@ -127,11 +127,14 @@ def test_unlit_tiles_are_left_out_without_changing_a_pixel(name: str) -> None:
     not traced. Tracing every pixel instead (skip_unlit_tiles false) gives the
     same in-scatter, per-light and error layers bit for bit, so every left-out
     pixel is exactly 0 and none of its neighbours' filtering changed. A camera
-    inside a beam has no unlit tile."""
+    inside a beam has no unlit tile. (Without the per-light layer, the
+    interpolation of smooth pixels needs unlit tiles on: it is off on both
+    sides here, and tested below.)"""
     scene = json.loads((DATA / f"{name}.json").read_text())
     layers = ["inscatter", "inscatter_per_light", "error"]
     skipped, report = _render_layers(scene, layers=layers, tolerance=0.05)
     traced, full_report = _render_layers(scene, layers=layers, tolerance=0.05, skip_unlit_tiles=False)
+    assert report["stats"]["pixels_interpolated"] == 0
     assert sorted(skipped) == sorted(traced)
     for k in skipped:
         assert np.array_equal(skipped[k], traced[k]), k
@@ -184,8 +187,9 @@ def test_unlit_tiles_on_extreme_beams(case: str) -> None:
             }
         )
     layers = ["inscatter", "error"]
-    skipped, report = _render_layers(scene, layers=layers, tolerance=0.05)
-    traced, _ = _render_layers(scene, layers=layers, tolerance=0.05, skip_unlit_tiles=False)
+    plain = {"tolerance": 0.05, "interpolate_smooth_pixels": False}
+    skipped, report = _render_layers(scene, layers=layers, **plain)
+    traced, _ = _render_layers(scene, layers=layers, skip_unlit_tiles=False, **plain)
     for k in skipped:
         assert np.isfinite(skipped[k]).all(), k
         assert np.array_equal(skipped[k], traced[k]), k
@@ -211,10 +215,104 @@ def test_requesting_transmittance_does_not_change_the_inscatter(width_px: float)
     scene["meshes"] = []
     scene["camera"]["clip_end_m"] = 40.0
     pixel_filter = {"type": "blackman_harris", "width_px": width_px}
-    only, only_report = _render_layers(scene, layers=["inscatter"], tolerance=0.1, pixel_filter=pixel_filter)
+    only, only_report = _render_layers(
+        scene, layers=["inscatter"], tolerance=0.1, pixel_filter=pixel_filter, interpolate_smooth_pixels=False
+    )
     both, both_report = _render_layers(
         scene, layers=["inscatter", "transmittance"], tolerance=0.1, pixel_filter=pixel_filter
     )
     assert only_report["stats"]["pixels_unlit"] > 0 and both_report["stats"]["pixels_unlit"] == 0
     assert only_report["error"]["edge_pixels"] == both_report["error"]["edge_pixels"]
     assert np.array_equal(only["inscatter"], both["inscatter"])
+
+
+def _scaled(name: str, scale: int) -> dict:
+    scene = json.loads((DATA / f"{name}.json").read_text())
+    w, h = scene["camera"]["resolution"]
+    scene["camera"]["resolution"] = [w * scale, h * scale]
+    return scene
+
+
+@pytest.mark.parametrize(
+    ("name", "scale"),
+    [("narrow_beam_5deg", 4), ("two_coloured_spots", 2), ("camera_in_dense_beam", 2), ("spot_box_occluder", 2)],
+)
+def test_interpolated_pixels_are_within_their_estimate(name: str, scale: int) -> None:
+    """Pixels interpolated where the in-scatter is smooth (render::smooth)
+    against the same scene traced at every pixel to 1e-7 (no pixel filter, so
+    each pixel is its centre sample): at tolerances 0.3, 0.01 and 1e-3 every
+    interpolated pixel is within its error estimate (plus f32 rounding) and
+    within the tolerance, and the report counts them. A box occluder shadows
+    the beam: nothing there is interpolated across its shadow (its light has
+    casters off the floor's plane, so no pixel crossing it is)."""
+    scene = _scaled(name, scale)
+    exact, _ = _render_layers(
+        scene, layers=["inscatter"], tolerance=1e-7, pixel_filter={"type": "none"}, interpolate_smooth_pixels=False
+    )
+    ref = exact["inscatter"].astype(np.float64)
+    for tol in (0.3, 0.01, 1e-3):
+        on, report = _render_layers(scene, layers=["inscatter", "error"], tolerance=tol, pixel_filter={"type": "none"})
+        off, _ = _render_layers(
+            scene, layers=["inscatter"], tolerance=tol, pixel_filter={"type": "none"}, interpolate_smooth_pixels=False
+        )
+        got, est = on["inscatter"].astype(np.float64), on["error"].astype(np.float64)
+        changed = (on["inscatter"] != off["inscatter"]).any(-1)
+        err = np.abs(got - ref)
+        outside = (err > est + 2e-7 * np.abs(ref)).any(-1) & changed
+        beyond_tol = (err > tol * np.abs(ref) + 2e-7 * np.abs(ref)).any(-1) & changed
+        interpolated = report["stats"]["pixels_interpolated"]
+        print(f"{name} ×{scale}, tolerance {tol}: {interpolated} interpolated, {changed.sum()} changed, "
+              f"{outside.sum()} outside the estimate, {beyond_tol.sum()} beyond the tolerance")
+        assert outside.sum() == 0 and beyond_tol.sum() == 0
+        assert np.isfinite(got).all() and np.isfinite(est).all()
+        if name == "spot_box_occluder":
+            assert interpolated == 0
+        else:
+            assert interpolated > 0 and changed.sum() > 0
+            assert any("interpolated" in e["why"] for e in report["plan"]["left_out"])
+
+
+@pytest.mark.parametrize("case", ["half_degree_beam", "camera_beside_the_apex", "window_shaft", "height_fog"])
+def test_interpolation_on_extreme_beams(case: str) -> None:
+    """Interpolation at its edges: a 0.5° beam (a sliver a few pixels wide,
+    whose samples may miss it while the pixel between hits it: the pixel's own
+    cone test sees it), the eye 1 mm beside the apex (the light's image in
+    view: its neighbourhood is traced), a window light's shaft beside the
+    beam, and the beam in height fog instead of haze. Against every pixel
+    traced to 1e-7: every changed pixel is within its estimate."""
+    scene = _scaled("narrow_beam_5deg", 2)
+    spot = scene["lights"][0]
+    if case == "half_degree_beam":
+        spot["spot_size_deg"] = 0.5
+    elif case == "camera_beside_the_apex":
+        scene["camera"]["position"] = [-9.0, 1.999, 6.0]
+        scene["camera"]["orientation"]["look_at"]["target"] = [-9.0, 12.0, 6.0]
+    elif case == "window_shaft":
+        scene["lights"].append(
+            {
+                "type": "window",
+                "name": "skylight",
+                "direction_to_light": [0.3, 0.2, 1.0],
+                "irradiance_w_m2": 50,
+                "aperture": [[-1, -1, 6], [1, -1, 6], [1, 1, 6], [-1, 1, 6]],
+            }
+        )
+    elif case == "height_fog":
+        scene["media"] = [
+            {
+                "type": "height_fog",
+                "name": "fog",
+                "scale_height_m": 3.0,
+                "mie": {"scattering": 0.05, "phase": {"type": "henyey_greenstein", "g": 0.5}},
+            }
+        ]
+    exact, _ = _render_layers(
+        scene, layers=["inscatter"], tolerance=1e-7, pixel_filter={"type": "none"}, interpolate_smooth_pixels=False
+    )
+    ref = exact["inscatter"].astype(np.float64)
+    on, report = _render_layers(scene, layers=["inscatter", "error"], tolerance=0.01, pixel_filter={"type": "none"})
+    got, est = on["inscatter"].astype(np.float64), on["error"].astype(np.float64)
+    assert np.isfinite(got).all() and np.isfinite(est).all()
+    outside = (np.abs(got - ref) > est + 2e-7 * np.abs(ref)).any(-1)
+    print(f"{case}: {report['stats']['pixels_interpolated']} interpolated, {outside.sum()} outside the estimate")
+    assert outside.sum() == 0

@@ -657,14 +657,24 @@ pub fn sky_to_files_with(
 
 /// The preview composite: grey surfaces (radiance 0.05 per channel, where a
 /// view ray hits a mesh) seen through the medium, `0.05·T + L`; sky pixels `L`.
+/// Without the depth layer there are no surfaces to show (`L` alone); without
+/// the transmittance layer, `T = 1`.
 pub fn preview_image(images: &Images) -> Vec<[f32; 3]> {
+    let n = images.inscatter.len();
+    let full_t = images.transmittance.len() == n;
+    let full_d = images.depth.len() == n;
     images
         .inscatter
         .iter()
-        .zip(&images.transmittance)
-        .zip(&images.depth)
-        .map(|((l, t), d)| {
-            let s = if *d < tyndall_core::render::DEPTH_NO_HIT { 0.05 } else { 0.0 };
+        .enumerate()
+        .map(|(i, l)| {
+            let t = if full_t { images.transmittance[i] } else { [1.0; 3] };
+            let d = if full_d {
+                images.depth[i]
+            } else {
+                tyndall_core::render::DEPTH_NO_HIT
+            };
+            let s = if d < tyndall_core::render::DEPTH_NO_HIT { 0.05 } else { 0.0 };
             [s * t[0] + l[0], s * t[1] + l[1], s * t[2] + l[2]]
         })
         .collect()

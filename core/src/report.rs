@@ -108,6 +108,16 @@ pub struct Stats {
     /// (in-scatter exactly 0) and no requested layer needs the ray.
     #[serde(default)]
     pub pixels_unlit: u64,
+    /// Pixels not traced: interpolated between traced ones where the
+    /// in-scatter is provably smooth, within the tolerance by their own
+    /// error estimate (`render::smooth`).
+    #[serde(default)]
+    pub pixels_interpolated: u64,
+    /// Pixels whose view ray was cast (surface hit, cone and prism tests)
+    /// but crosses no light's illumination volume: in-scatter exactly 0,
+    /// nothing integrated (with `pixels_interpolated`'s machinery on).
+    #[serde(default)]
+    pub pixels_outside_every_volume: u64,
     /// Pixels with a NaN or infinite value in any layer (0 unless there is a bug).
     pub non_finite_pixels: u64,
     /// Triangles in the BVH.

@@ -925,6 +925,14 @@ pub struct Output {
     /// false traces every pixel (same images, for checking).
     #[serde(default = "default_true")]
     pub skip_unlit_tiles: bool,
+    /// Interpolate pixels where the in-scatter is provably smooth (inside a
+    /// beam, away from silhouettes, shadows and lights' images), when only
+    /// in-scatter layers (and the error) are requested and unlit tiles are
+    /// left out: every other pixel's view ray is traced, the rest are
+    /// interpolated when their error estimate meets the tolerance (see
+    /// `render::smooth`). Default true; false traces every pixel.
+    #[serde(default = "default_true")]
+    pub interpolate_smooth_pixels: bool,
 }
 
 impl Default for Output {
@@ -936,6 +944,7 @@ impl Default for Output {
             spectral: SpectralMode::Auto,
             pixel_filter: PixelFilter::default(),
             skip_unlit_tiles: true,
+            interpolate_smooth_pixels: true,
         }
     }
 }

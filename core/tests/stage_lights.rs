@@ -1061,3 +1061,62 @@ fn asymmetric_ies_gets_an_elliptical_volume_with_unchanged_results() {
     assert!(worst <= tol, "worst relative error {worst:e} above the tolerance {tol:e}");
     assert!(crossed_ellipse < crossed_circle, "{crossed_ellipse} vs {crossed_circle}");
 }
+
+/// The topology code a traced ray gets as a by-product of its integral
+/// (`StageShade::topology`) is the one `StageLights::topology` computes from
+/// the geometry alone, which decides whether a pixel may be interpolated
+/// (`render::smooth`): two spots with blend cones and a floor, random rays
+/// (some starting inside a beam, some ending on the floor). The codes also
+/// tell rays apart: several distinct codes occur.
+#[test]
+fn topology_code_of_a_traced_ray_equals_the_geometric_one() {
+    let mut rng = Rng(0x5eed_70b0);
+    let spot = |name: &str, pos: DVec3, axis: DVec3, size: f64, blend: f64| {
+        let s = SpotLight {
+            name: name.into(),
+            position: pos.to_array(),
+            orientation: Orientation::QuaternionWxyz(quat_for_axis(axis)),
+            color: [1.0; 3],
+            power_w: 800.0,
+            radius_m: 0.0,
+            spot_size_deg: size,
+            spot_blend: blend,
+            ies: None,
+        };
+        PreparedPoint {
+            light: PointSource::from_spot(&s, [1.0; 3], None),
+            shadows: None,
+        }
+    };
+    let (pa, aa) = (DVec3::new(-1.0, 0.0, 4.0), DVec3::new(0.3, 0.0, -1.0));
+    let (pb, ab) = (DVec3::new(1.5, 0.5, 5.0), DVec3::new(-0.2, -0.1, -1.0));
+    let lights = StageLights {
+        points: vec![spot("a", pa, aa, 30.0, 0.3), spot("b", pb, ab, 12.0, 0.1)],
+        windows: vec![],
+    };
+    let floor = Triangle::new(
+        DVec3::new(-50.0, -50.0, 0.0),
+        DVec3::new(50.0, -50.0, 0.0),
+        DVec3::new(0.0, 80.0, 0.0),
+    );
+    let bvh = Bvh::build(vec![floor]);
+    let media = [world(0.05, 0.01, Phase::Iso)];
+    let mut rays = random_rays(&mut rng, 1500, pa, aa);
+    rays.extend(random_rays(&mut rng, 1500, pb, ab));
+    let mut buf = Vec::new();
+    let mut codes = std::collections::BTreeSet::new();
+    for (o, d) in rays {
+        let s_max = bvh.closest_hit(o, d, 0.0, f64::INFINITY).map_or(f64::INFINITY, |h| h.t);
+        let ray = ViewRay { origin: o, dir: d, s_max };
+        let mut scratch = Scratch::default();
+        let mut per = [[0.0; 3]; MAX_LIGHT_LAYERS];
+        let traced = lights
+            .shade(&ray, &media, Some(&bvh), 1e-3, &mut scratch, &mut per, &|v: &[f64; 3]| *v)
+            .topology;
+        let geometric = lights.topology(&ray, &mut buf, &|_| false);
+        assert_eq!(traced, geometric, "o = {o}, d = {d}, s_max = {s_max}");
+        codes.insert(geometric);
+    }
+    assert!(codes.len() >= 8, "only {} distinct codes", codes.len());
+    assert!(lights.topology_bits() <= 62);
+}

@@ -20,6 +20,7 @@
 //! rows finish.
 
 pub mod filter;
+pub mod smooth;
 pub mod stage;
 pub mod unlit;
 
@@ -75,9 +76,10 @@ pub struct Images {
     pub height: usize,
     /// In-scattered radiance, W·m⁻²·sr⁻¹, linear Rec.709.
     pub inscatter: Vec<[f32; 3]>,
-    /// View transmittance, 0..1.
+    /// View transmittance, 0..1; empty unless a layer made from it is requested.
     pub transmittance: Vec<[f32; 3]>,
-    /// Distance to the first surface, m; [`DEPTH_NO_HIT`] where none.
+    /// Distance to the first surface, m; [`DEPTH_NO_HIT`] where none; empty
+    /// unless the depth layer is requested.
     pub depth: Vec<f32>,
     /// Sunlight transmittance at the surface point (1 without surface).
     pub sun_transmittance: Vec<[f32; 3]>,
@@ -1138,6 +1140,54 @@ fn render_channels<const C: usize, const K: usize>(
 
     let (tris, owner) = world_triangles(&scene.meshes);
     report.stats.triangles = tris.len() as u64;
+    // What the smoothness test of [`smooth`] needs of the scene: the
+    // surfaces' planes and each light's volume and shadow casters. Only when
+    // the media and the lights' distributions are smooth.
+    let smooth_scene: Result<(smooth::Planes, Vec<smooth::Casters>), &str> = {
+        let media_smooth = media.iter().all(|m| match m {
+            PreparedMedium::Homogeneous(h) => h.bounds.is_none(),
+            PreparedMedium::HeightFog(_) => true,
+            _ => false,
+        });
+        let lights_smooth = stage_lights
+            .points
+            .iter()
+            .all(|p| p.light.smooth_between_kinks() && p.light.ellipse.is_none() && p.light.cos_reach > 0.0);
+        if !scene.output.interpolate_smooth_pixels {
+            Err("not asked for (output.interpolate_smooth_pixels false)")
+        } else if media.is_empty() || stage_lights.is_empty() {
+            Err("no stage light in a medium")
+        } else if !media_smooth {
+            Err("a medium with a boundary inside the scene (fog layer, dry-ice layer, smoke ellipsoid, bounded box)")
+        } else if !lights_smooth {
+            Err(
+                "a light whose distribution is not smooth (IES, pattern, table, elliptical) or whose cone is not narrower than a hemisphere",
+            )
+        } else if stage_lights.topology_bits() > 62 {
+            Err("too many lights and cones for the 62-bit topology code")
+        } else {
+            let eye = cam.position;
+            let planes = smooth::Planes::new(&scene.meshes, &tris);
+            let margin = 1e-9 * (1.0 + eye.abs().max_element());
+            let points = stage_lights.points.iter().map(|p| {
+                let l = &p.light;
+                let (apex, axis, cos_reach) = (l.position, l.frame.axis, l.cos_reach);
+                smooth::Casters::of(
+                    &tris,
+                    &planes,
+                    eye,
+                    |c, r| stage::sphere_may_touch_cone(apex, axis, cos_reach, c, r),
+                    |n, offset| n.dot(apex) - offset > margin,
+                )
+            });
+            // A window's prism has flat faces and edges: where a ray's entry
+            // or exit face changes, the in-scatter has a kink its code does
+            // not record. Rays crossing a prism are never interpolated.
+            let windows = stage_lights.windows.iter().map(|_| smooth::Casters::Any);
+            let casters: Vec<smooth::Casters> = points.chain(windows).collect();
+            Ok((planes, casters))
+        }
+    };
     let bvh = if tris.is_empty() {
         report
             .plan
@@ -1287,6 +1337,7 @@ fn render_channels<const C: usize, const K: usize>(
         out.stage_crossed = p.stage.map_or(0, |s| s.lights_crossed);
         out.stage_shadow_rays = p.stage.map_or(0, |s| s.shadow_rays);
         out.stage_clamped = p.stage.is_some_and(|s| s.clamped);
+        out.topology = p.stage.map_or(0, |s| s.topology);
     };
     let sample = |x: f64, y: f64| -> Sample<K> {
         let mut s = Sample::<K>::default();
@@ -1356,28 +1407,110 @@ fn render_channels<const C: usize, const K: usize>(
         }
     };
 
+    // Images of point lights: there the in-scatter has an integrable 1/r
+    // peak, which the filter's lattice resolves with cells down to 1/2048 px.
+    let light_images: Vec<(f64, f64)> = stage_lights.points.iter().filter_map(|p| cam.project(p.light.position)).collect();
+    // Pixels may be interpolated ([`smooth`]) only with unlit tiles on
+    // (in-scatter layers only, perspective, stage lights only).
+    let smooth_on = smooth_scene.is_ok() && unlit_grid.is_some() && !want_per_light && !want_surface_t;
+    const ST: usize = smooth::STENCIL;
+    // Whether pixel (col, row) is left for the interpolation passes: odd
+    // pixels of even rows (interpolated along x), all of odd rows (along y),
+    // with the stencil inside the frame, away from the lights' images.
+    let deferred = |col: usize, row: usize| -> bool {
+        if !smooth_on || (row.is_multiple_of(2) && col.is_multiple_of(2)) {
+            return false;
+        }
+        let stencil_inside = if row.is_multiple_of(2) {
+            col >= ST && col + ST < w
+        } else {
+            row >= ST && row + ST < h
+        };
+        let (x, y) = (col as f64 + 0.5, row as f64 + 0.5);
+        let m = smooth::LIGHT_IMAGE_MARGIN;
+        stencil_inside
+            && !light_images.iter().any(|&(ix, iy)| (ix - x).abs() <= m && (iy - y).abs() <= m)
+            && !unlit(col as isize, row as isize)
+    };
+    // A pixel's surface (triangle + 1, 0: none) and topology code
+    // ([`smooth::PRESENT`] set; 0 below it: the ray crosses no light's
+    // volume, in-scatter 0), from one surface hit and the cone tests.
+    let code_of = |x: f64, y: f64, buf: &mut Vec<(f64, f64)>| -> (u32, u64) {
+        let Ok((_, casters)) = &smooth_scene else { return (0, 0) };
+        let dir = cam.direction(x, y);
+        let start = cam.start_distance(dir);
+        let (end, surface) = match bvh.as_ref().and_then(|b| b.closest_hit(cam.position, dir, start, cam.clip_end)) {
+            Some(hit) => (hit.t, hit.triangle + 1),
+            None => (cam.clip_end, 0),
+        };
+        let ray = ViewRay {
+            origin: cam.position + dir * start,
+            dir,
+            s_max: (end - start).max(0.0),
+        };
+        let end_point = cam.position + dir * end;
+        (
+            surface,
+            smooth::PRESENT | stage_lights.topology(&ray, buf, &|k| casters[k].may_shadow(end_point)),
+        )
+    };
+    // The same for a traced sample, from its own surface hit and cone tests.
+    let traced_code = |x: f64, y: f64, s: &Sample<K>| -> u64 {
+        let Ok((_, casters)) = &smooth_scene else { return 0 };
+        let end = if s.hit { s.depth } else { cam.clip_end };
+        let end_point = cam.position + cam.direction(x, y) * end;
+        let shadowed = (0..casters.len()).any(|k| (k >= 64 || s.stage_crossed >> k & 1 == 1) && casters[k].may_shadow(end_point));
+        smooth::PRESENT | s.topology | u64::from(shadowed) << 63
+    };
+    // The plane group + 1 of a surface (triangle + 1; 1: none).
+    let group_of = |surface: u32| -> u32 {
+        match &smooth_scene {
+            Ok((planes, _)) if surface > 0 => planes.group_of(surface - 1) + 1,
+            _ => 1,
+        }
+    };
     // Pass 1: the centre of every pixel, rows in parallel, straight into the
     // output buffers (plus the surface id for silhouette detection).
     // Layers not requested get one dummy element per row instead of a full buffer.
     let mut inscatter = vec![[0f32; 3]; n];
-    let mut transmittance = vec![[1f32; 3]; n];
-    let mut depth = vec![DEPTH_NO_HIT; n];
+    // Layers filled with a constant (T = 1, no depth) are full-size only when
+    // requested: a constant buffer is written page by page (1.3 ms for 4 MB
+    // at 768×432), a zeroed one costs nothing until touched.
+    let want_depth = want(LayerKind::Depth);
+    let mut transmittance = vec![[1f32; 3]; if need_t { n } else { h }];
+    let mut depth = vec![DEPTH_NO_HIT; if want_depth { n } else { h }];
     let mut surface = vec![0u32; n];
     let mut sun_t = vec![[1f32; 3]; if want_sun_t { n } else { h }];
-    let mut error = vec![[0f32; 3]; if want_error { n } else { h }];
-    let (sun_chunk, err_chunk) = (if want_sun_t { w } else { 1 }, if want_error { w } else { 1 });
+    // The interpolation reads the samples' own errors (so the error buffer
+    // is full-size then) and their topology codes ([`smooth::PRESENT`]: a
+    // code to read; the surface comes from `surface`).
+    let full_error = want_error || smooth_on;
+    let mut error = vec![[0f32; 3]; if full_error { n } else { h }];
+    let mut codes = vec![0u64; if smooth_on { n } else { h }];
+    let (sun_chunk, err_chunk) = (if want_sun_t { w } else { 1 }, if full_error { w } else { 1 });
+    let (t_chunk, d_chunk) = (if need_t { w } else { 1 }, if want_depth { w } else { 1 });
+    let smooth_chunk = if smooth_on { w } else { 1 };
     let done = AtomicUsize::new(0);
+    let px_of = |s: &Sample<K>| Px {
+        l: s.l.map(|v| v as f32),
+        t: s.t.map(|v| v.clamp(0.0, 1.0) as f32),
+        d: if s.hit { s.depth as f32 } else { DEPTH_NO_HIT },
+        id: s.surface,
+        st: s.st.map(|v| v.clamp(0.0, 1.0) as f32),
+        e: s.e.map(|v| v as f32),
+    };
     // Per row: its stats, and the per-light in-scatter and surface-transmittance rows.
     type RowOut = (RowStats, Vec<[f32; 3]>, Vec<[f32; 3]>);
     let row_stats: Vec<RowOut> = inscatter
         .par_chunks_mut(w)
-        .zip(transmittance.par_chunks_mut(w))
-        .zip(depth.par_chunks_mut(w))
+        .zip(transmittance.par_chunks_mut(t_chunk))
+        .zip(depth.par_chunks_mut(d_chunk))
         .zip(surface.par_chunks_mut(w))
         .zip(sun_t.par_chunks_mut(sun_chunk))
         .zip(error.par_chunks_mut(err_chunk))
+        .zip(codes.par_chunks_mut(smooth_chunk))
         .enumerate()
-        .map(|(row, (((((l_row, t_row), d_row), id_row), s_row), e_row))| {
+        .map(|(row, ((((((l_row, t_row), d_row), id_row), s_row), e_row), code_row))| {
             let mut st = RowStats::default();
             let mut light_row = if want_per_light { vec![[0f32; 3]; n_stage * w] } else { Vec::new() };
             let mut surface_row = if want_surface_t { vec![[0f32; 3]; n_stage * w] } else { Vec::new() };
@@ -1387,6 +1520,9 @@ fn render_channels<const C: usize, const K: usize>(
                     // The buffers' defaults: no in-scatter, no error; the
                     // ray-dependent layers are not requested.
                     st.unlit += 1;
+                    continue;
+                }
+                if deferred(col, row) {
                     continue;
                 }
                 sample_into(col as f64 + 0.5, row as f64 + 0.5, &mut s);
@@ -1400,15 +1536,23 @@ fn render_channels<const C: usize, const K: usize>(
                         surface_row[k * w + col] = surface_transmittance_of(&s, k);
                     }
                 }
-                l_row[col] = s.l.map(|v| v as f32);
-                t_row[col] = s.t.map(|v| v.clamp(0.0, 1.0) as f32);
-                d_row[col] = if s.hit { s.depth as f32 } else { DEPTH_NO_HIT };
-                id_row[col] = s.surface;
-                if want_sun_t {
-                    s_row[col] = s.st.map(|v| v.clamp(0.0, 1.0) as f32);
+                let p = px_of(&s);
+                l_row[col] = p.l;
+                if need_t {
+                    t_row[col] = p.t;
                 }
-                if want_error {
-                    e_row[col] = s.e.map(|v| v as f32);
+                if want_depth {
+                    d_row[col] = p.d;
+                }
+                id_row[col] = p.id;
+                if want_sun_t {
+                    s_row[col] = p.st;
+                }
+                if full_error {
+                    e_row[col] = p.e;
+                }
+                if smooth_on {
+                    code_row[col] = traced_code(col as f64 + 0.5, row as f64 + 0.5, &s);
                 }
                 st.add(&s);
             }
@@ -1443,13 +1587,116 @@ fn render_channels<const C: usize, const K: usize>(
             }
         }
     }
+    // Passes 1b and 1c: the deferred pixels, interpolated from six samples
+    // 2 px apart where that meets the tolerance ([`smooth::interpolate`]),
+    // else traced: first the odd pixels of even rows along x (in place: a
+    // row reads only its own even pixels), then the odd rows along y
+    // (reading the even rows, now complete; written back after).
+    if smooth_on {
+        // One deferred pixel, given its six samples: (in-scatter, error,
+        // surface, code), and what it adds to the row's statistics.
+        let fill = |col: usize,
+                    row: usize,
+                    stencil: &[smooth::StencilSample; 6],
+                    st: &mut RowStats,
+                    s: &mut Sample<K>,
+                    buf: &mut Vec<(f64, f64)>| {
+            let (x, y) = (col as f64 + 0.5, row as f64 + 0.5);
+            // The pixel's own code costs a surface hit and cone tests: only
+            // worth it when the six samples agree.
+            let common = stencil[0]
+                .map(|v| v.2)
+                .filter(|g| stencil.iter().all(|v| v.is_some_and(|v| v.2 == *g)));
+            let own = common.and_then(|g| {
+                let (surface, code) = code_of(x, y, buf);
+                // Top bit: a light the ray crosses may be shadowed.
+                ((group_of(surface), code) == g && code >> 63 == 0).then_some((surface, code))
+            });
+            match own {
+                Some((surface, code)) if code == smooth::PRESENT => {
+                    // The ray crosses no light's volume (nor do the samples):
+                    // in-scatter exactly 0.
+                    st.outside += 1;
+                    ([0.0f32; 3], [0.0f32; 3], surface, code)
+                }
+                Some((surface, code)) if let Some((l, e)) = smooth::interpolate(stencil, (group_of(surface), code), tolerance) => {
+                    st.add_interpolated(&l, &e);
+                    (l.map(|v| v as f32), e.map(|v| v as f32), surface, code)
+                }
+                _ => {
+                    sample_into(x, y, s);
+                    st.add(s);
+                    let code = traced_code(x, y, s);
+                    debug_assert!(own.is_none_or(|o| o.1 == code), "{own:?} vs {code}");
+                    (s.l.map(|v| v as f32), s.e.map(|v| v as f32), s.surface, code)
+                }
+            }
+        };
+        let read = |l: &[[f32; 3]], e: &[[f32; 3]], id: &[u32], code: &[u64], i: usize| -> smooth::StencilSample {
+            (code[i] & smooth::PRESENT != 0).then(|| (l[i], e[i], (group_of(id[i]), code[i])))
+        };
+        let along_x: Vec<RowStats> = inscatter
+            .par_chunks_mut(w)
+            .zip(surface.par_chunks_mut(w))
+            .zip(error.par_chunks_mut(w))
+            .zip(codes.par_chunks_mut(w))
+            .enumerate()
+            .filter(|(row, _)| row.is_multiple_of(2))
+            .map(|(row, (((l_row, id_row), e_row), code_row))| {
+                let (mut st, mut s, mut buf) = (RowStats::default(), Sample::<K>::default(), Vec::new());
+                for col in (1..w).step_by(2) {
+                    if !deferred(col, row) {
+                        continue;
+                    }
+                    let stencil: [smooth::StencilSample; 6] =
+                        std::array::from_fn(|k| read(l_row, e_row, id_row, code_row, col + 2 * k - ST));
+                    let (l, e, id, code) = fill(col, row, &stencil, &mut st, &mut s, &mut buf);
+                    (l_row[col], e_row[col], id_row[col], code_row[col]) = (l, e, id, code);
+                }
+                st
+            })
+            .collect();
+        type Filled = Vec<(usize, [f32; 3], [f32; 3], u32, u64)>;
+        let along_y: Vec<(Filled, RowStats)> = (0..h / 2)
+            .into_par_iter()
+            .map(|half| {
+                let row = 2 * half + 1;
+                let (mut st, mut s, mut buf) = (RowStats::default(), Sample::<K>::default(), Vec::new());
+                let mut out: Filled = Vec::with_capacity(w);
+                for col in 0..w {
+                    if !deferred(col, row) {
+                        continue;
+                    }
+                    let stencil: [smooth::StencilSample; 6] =
+                        std::array::from_fn(|k| read(&inscatter, &error, &surface, &codes, (row + 2 * k - ST) * w + col));
+                    let (l, e, id, code) = fill(col, row, &stencil, &mut st, &mut s, &mut buf);
+                    out.push((col, l, e, id, code));
+                }
+                (out, st)
+            })
+            .collect();
+        inscatter
+            .par_chunks_mut(2 * w)
+            .zip(surface.par_chunks_mut(2 * w))
+            .zip(error.par_chunks_mut(2 * w))
+            .zip(&along_y)
+            .for_each(|(((l_rows, id_rows), e_rows), (out, _))| {
+                for &(col, l, e, id, _) in out {
+                    (l_rows[w + col], e_rows[w + col], id_rows[w + col]) = (l, e, id);
+                }
+            });
+        for st in along_x.iter().chain(along_y.iter().map(|(_, st)| st)) {
+            stats.merge(st);
+        }
+    }
+    drop(codes);
+    if !want_error {
+        error = vec![[0f32; 3]; h];
+    }
     t = report.time("render", t);
 
     // Pass 2: Blender's pixel filter where the centre sample is not good enough.
     let mut edge = EdgeStats::default();
-    // Images of point lights: there the in-scatter has an integrable 1/r
-    // peak, which the filter's lattice resolves with cells down to 1/2048 px.
-    let light_images: Vec<(f64, f64)> = stage_lights.points.iter().filter_map(|p| cam.project(p.light.position)).collect();
     report.stats.light_images = light_images.iter().map(|p| [p.0, p.1]).collect();
     if filter.radius() > 0.0 {
         let reach = filter.radius().ceil() as isize;
@@ -1517,7 +1764,11 @@ fn render_channels<const C: usize, const K: usize>(
                     let x = px as isize - reach;
                     *out = if x >= 0 && y >= 0 && (x as usize) < w && (y as usize) < h {
                         let i = y as usize * w + x as usize;
-                        (inscatter[i], transmittance[i], surface_key(surface[i]))
+                        (
+                            inscatter[i],
+                            if need_t { transmittance[i] } else { [1.0; 3] },
+                            surface_key(surface[i]),
+                        )
                     } else if unlit(x, y) {
                         ([0.0; 3], [1.0; 3], 0)
                     } else {
@@ -1870,7 +2121,9 @@ fn render_channels<const C: usize, const K: usize>(
             for (k, img) in light_surface_transmittance.iter_mut().enumerate() {
                 img[*i] = surface_transmittance_of(s, k);
             }
-            transmittance[*i] = s.t.map(|v| v.clamp(0.0, 1.0) as f32);
+            if need_t {
+                transmittance[*i] = s.t.map(|v| v.clamp(0.0, 1.0) as f32);
+            }
             if want_sun_t {
                 sun_t[*i] = s.st.map(|v| v.clamp(0.0, 1.0) as f32);
             }
@@ -1920,6 +2173,31 @@ fn render_channels<const C: usize, const K: usize>(
     report.stats.rays_hit_surface = stats.hits;
     report.stats.rays_without_medium = stats.vacuum;
     report.stats.pixels_unlit = stats.unlit;
+    report.stats.pixels_interpolated = stats.interpolated;
+    report.stats.pixels_outside_every_volume = stats.outside;
+    if stats.outside > 0 {
+        report.plan.left_out(
+            format!("scattering integral on {} view rays", stats.outside),
+            "outside every light's volume: the ray's surface hit and its cone and prism tests show it crosses none (in-scatter exactly 0, no medium evaluated)",
+        );
+    }
+    match &smooth_scene {
+        Ok(_) if smooth_on => report.plan.left_out(
+            format!("scattering integral on {} view rays", stats.interpolated),
+            format!(
+                "interpolated: the 4-point cubic between samples 2 px apart that end on the same plane and cross the same light cones (blend cones included) and window prisms the same way as the pixel's own ray (its topology, one surface hit and cone tests), unshadowed, away from the lights' images; charged {} × (3/256)(|Δ⁴_L| + |Δ⁴_R|) plus the samples' own errors, within the tolerance (rays that cross no light: exactly 0)",
+                smooth::SAFETY
+            ),
+        ),
+        Err(why) if scene.output.interpolate_smooth_pixels && !stage_lights.is_empty() && !media.is_empty() => {
+            report.plan.computed("every lit pixel's view ray", format!("no pixel interpolated: {why}"))
+        }
+        Ok(_) => report.plan.computed(
+            "every lit pixel's view ray",
+            "no pixel interpolated: only for in-scatter layers (and the error), not per light, with unlit tiles on",
+        ),
+        _ => {}
+    }
     if stats.unlit > 0 {
         report.plan.left_out(
             format!("view rays of {} pixels", stats.unlit),
@@ -1953,7 +2231,7 @@ fn render_channels<const C: usize, const K: usize>(
         max_abs: stats.max_abs,
         max_rel: stats.max_rel,
         f32_storage_rel: f64::from(f32::EPSILON) / 2.0,
-        pixels_closed_form: pixels - stats.numeric - stats.vacuum - stats.unlit,
+        pixels_closed_form: pixels - stats.numeric - stats.vacuum - stats.unlit - stats.interpolated - stats.outside,
         pixels_numeric: stats.numeric,
         pixels_not_converged: stats.not_converged,
         edge_pixels: edge.pixels,
@@ -2013,8 +2291,8 @@ fn render_channels<const C: usize, const K: usize>(
         width: w,
         height: h,
         inscatter,
-        transmittance,
-        depth,
+        transmittance: if need_t { transmittance } else { Vec::new() },
+        depth: if want_depth { depth } else { Vec::new() },
         sun_transmittance: sun_t,
         error,
         layers: scene.output.layers.clone(),
@@ -2074,6 +2352,8 @@ struct RowStats {
     hits: u64,
     vacuum: u64,
     unlit: u64,
+    interpolated: u64,
+    outside: u64,
     numeric: u64,
     not_converged: u64,
     non_finite: u64,
@@ -2086,7 +2366,31 @@ fn nan_max(a: f64, b: f64) -> f64 {
     if a.is_nan() || b.is_nan() { f64::NAN } else { a.max(b) }
 }
 
+/// What pass 1 writes for one pixel.
+#[derive(Debug, Clone, Copy)]
+struct Px {
+    l: [f32; 3],
+    t: [f32; 3],
+    d: f32,
+    id: u32,
+    st: [f32; 3],
+    e: [f32; 3],
+}
+
 impl RowStats {
+    /// An interpolated pixel: in-scatter `l` with the error estimate `e`.
+    fn add_interpolated(&mut self, l: &[f64; 3], e: &[f64; 3]) {
+        self.interpolated += 1;
+        let finite = l.iter().chain(e).all(|v| v.is_finite());
+        self.non_finite += (!finite) as u64;
+        self.max_abs = nan_max(self.max_abs, e.iter().fold(0.0f64, |m, v| nan_max(m, *v)));
+        for c in 0..3 {
+            if l[c].abs() > 0.0 {
+                self.max_rel = nan_max(self.max_rel, e[c] / l[c].abs());
+            }
+        }
+    }
+
     fn add<const K: usize>(&mut self, s: &Sample<K>) {
         self.stage_crossed |= s.stage_crossed;
         self.stage_segments += u64::from(s.stage_segments);
@@ -2115,6 +2419,8 @@ impl RowStats {
         self.hits += o.hits;
         self.vacuum += o.vacuum;
         self.unlit += o.unlit;
+        self.interpolated += o.interpolated;
+        self.outside += o.outside;
         self.numeric += o.numeric;
         self.not_converged += o.not_converged;
         self.non_finite += o.non_finite;
@@ -2142,6 +2448,8 @@ struct Sample<const K: usize> {
     stage_crossed: u64,
     stage_shadow_rays: u32,
     stage_clamped: bool,
+    /// Topology code of the ray without its shadow bit ([`stage::StageShade::topology`]).
+    topology: u64,
     l: [f64; 3],
     t: [f64; 3],
     st: [f64; 3],
@@ -2166,6 +2474,7 @@ impl<const K: usize> Default for Sample<K> {
             stage_crossed: 0,
             stage_shadow_rays: 0,
             stage_clamped: false,
+            topology: 0,
             l: [0.0; 3],
             t: [0.0; 3],
             st: [0.0; 3],

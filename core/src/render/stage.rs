@@ -111,6 +111,8 @@ pub struct StageShade<const C: usize> {
     pub converged: bool,
     /// Whether the ray passed closer to a point light than its floor distance.
     pub clamped: bool,
+    /// The ray's topology code ([`StageLights::topology`]) without its shadow bit.
+    pub topology: u64,
 }
 
 /// Reusable buffers of one thread.
@@ -123,6 +125,33 @@ pub struct Scratch {
     cuts: Vec<f64>,
     kink: Vec<(f64, f64)>,
     bounds: Vec<f64>,
+}
+
+/// Whether the sphere (`centre`, `radius`) may touch the cone with apex
+/// `apex`, unit `axis` and half-angle `acos(cos_reach)` (conservative: a
+/// shadow caster test; `cos_reach ≤ −1` is the whole space).
+pub fn sphere_may_touch_cone(apex: DVec3, axis: DVec3, cos_reach: f64, centre: DVec3, radius: f64) -> bool {
+    if cos_reach <= -1.0 {
+        return true;
+    }
+    let v = centre - apex;
+    let dist = v.length();
+    if dist <= radius {
+        return true;
+    }
+    let half = cos_reach.clamp(-1.0, 1.0).acos();
+    let angle = (v.dot(axis) / dist).clamp(-1.0, 1.0).acos();
+    angle <= half + (radius / dist).clamp(0.0, 1.0).asin() + 1e-9
+}
+
+/// Four bits of a topology code for the intervals `iv` of `[0, end]` inside
+/// one cone or prism: their number (0, 1, 2+), whether the first starts at 0
+/// and whether the last ends at `end`.
+fn interval_bits(iv: &[(f64, f64)], end: f64) -> u64 {
+    let n = iv.len().min(2) as u64;
+    let starts = iv.first().is_some_and(|i| i.0 <= 0.0) as u64;
+    let ends = iv.last().is_some_and(|i| i.1 >= end) as u64;
+    n | starts << 2 | ends << 3
 }
 
 /// Intersection of two sorted disjoint interval lists.
@@ -315,18 +344,7 @@ impl<const C: usize> StageLights<C> {
             let l = &p.light;
             let (apex, axis, cos_reach) = (l.position, l.frame.axis, l.cos_reach);
             let half = cos_reach.clamp(-1.0, 1.0).acos();
-            let keep = move |centre: DVec3, radius: f64| -> bool {
-                if cos_reach <= -1.0 {
-                    return true;
-                }
-                let v = centre - apex;
-                let dist = v.length();
-                if dist <= radius {
-                    return true;
-                }
-                let angle = (v.dot(axis) / dist).clamp(-1.0, 1.0).acos();
-                angle <= half + (radius / dist).clamp(0.0, 1.0).asin() + 1e-9
-            };
+            let keep = move |centre: DVec3, radius: f64| sphere_may_touch_cone(apex, axis, cos_reach, centre, radius);
             let (fx, fy) = (l.frame.x, l.frame.y);
             p.shadows = Some(ShadowWedges::build(Projector::Point(apex), meshes, keep).with_visibility_grid(axis, fx, fy, half, meshes));
         });
@@ -359,6 +377,7 @@ impl<const C: usize> StageLights<C> {
             shadow_rays: 0,
             converged: true,
             clamped: false,
+            topology: 0,
         };
         media_support(ray, media, &mut scratch.media);
         if scratch.media.is_empty() {
@@ -367,6 +386,8 @@ impl<const C: usize> StageLights<C> {
         }
         let (o, d) = (ray.origin, ray.dir);
         let mut index = 0;
+        // Bit offset of the light's cones in the topology code.
+        let mut base = 0usize;
         for p in &self.points {
             let l = &p.light;
             match l.ellipse {
@@ -382,7 +403,12 @@ impl<const C: usize> StageLights<C> {
             if !scratch.pieces.is_empty() && index < 64 {
                 out.lights_crossed |= 1 << index;
             }
-            let value = self.point_light(p, ray, media, bvh, tolerance, scratch, &mut out);
+            let kinks = l.kinks();
+            if let Some(i) = kinks.as_slice().iter().position(|&c| c == l.cos_reach) {
+                out.topology |= interval_bits(&scratch.cone, ray.s_max) << (base + 4 * i).min(63);
+            }
+            let value = self.point_light(p, ray, media, bvh, tolerance, scratch, &mut out, base);
+            base += 4 * kinks.as_slice().len();
             if let Some(slot) = per_light.get_mut(index) {
                 *slot = to_rgb(&value);
             }
@@ -390,6 +416,8 @@ impl<const C: usize> StageLights<C> {
         }
         for w in &self.windows {
             w.light.intervals(o, d, 0.0, ray.s_max, &mut scratch.cone);
+            out.topology |= interval_bits(&scratch.cone, ray.s_max) << base.min(63);
+            base += 4;
             intersect(&scratch.cone, &scratch.media, &mut scratch.pieces);
             if !scratch.pieces.is_empty() && index < 64 {
                 out.lights_crossed |= 1 << index;
@@ -401,6 +429,56 @@ impl<const C: usize> StageLights<C> {
             index += 1;
         }
         out
+    }
+
+    /// Bits of [`StageLights::topology`]: four per cone of every point light
+    /// (its kinks) and per window prism.
+    pub fn topology_bits(&self) -> usize {
+        let cones: usize = self.points.iter().map(|p| p.light.kinks().as_slice().len()).sum();
+        4 * (cones + self.windows.len())
+    }
+
+    /// The ray's topology code (see [`super::smooth`]): for every cone on
+    /// which a point light's distribution has a kink or ends, and every
+    /// window prism, 4 bits: how many intervals of `[0, s_max]` lie inside
+    /// it (0, 1 or 2+), whether the first starts at 0 and whether the last
+    /// ends at `s_max`. Bit `k` of `shadowed`, for the lights crossed, is
+    /// or-ed into the top bit (kept free by [`StageLights::topology_bits`]
+    /// ≤ 63). Rays with equal codes cross the same boundaries in the same
+    /// order, so the in-scatter is smooth between them.
+    pub fn topology(&self, ray: &ViewRay, buf: &mut Vec<(f64, f64)>, may_shadow: &dyn Fn(usize) -> bool) -> u64 {
+        let (o, d, end) = (ray.origin, ray.dir, ray.s_max);
+        let mut code = 0u64;
+        let mut base = 0usize;
+        let mut shadowed = false;
+        for (k, p) in self.points.iter().enumerate() {
+            let l = &p.light;
+            let kinks = l.kinks();
+            // The illumination cone holds all the others: a ray that misses
+            // it has zeros for every cone of the light.
+            ray_cone_intervals(o, d, 0.0, end, l.position, l.frame.axis, l.cos_reach, buf);
+            if !buf.is_empty() {
+                shadowed |= may_shadow(k);
+                let reach = interval_bits(buf, end);
+                for (i, &c) in kinks.as_slice().iter().enumerate() {
+                    let bits = if c == l.cos_reach {
+                        reach
+                    } else {
+                        ray_cone_intervals(o, d, 0.0, end, l.position, l.frame.axis, c, buf);
+                        interval_bits(buf, end)
+                    };
+                    code |= bits << (base + 4 * i).min(63);
+                }
+            }
+            base += 4 * kinks.as_slice().len();
+        }
+        for (k, w) in self.windows.iter().enumerate() {
+            w.light.intervals(o, d, 0.0, end, buf);
+            code |= interval_bits(buf, end) << base.min(63);
+            shadowed |= !buf.is_empty() && may_shadow(self.points.len() + k);
+            base += 4;
+        }
+        code | (shadowed as u64) << 63
     }
 
     /// Removes the shadowed parts of `scratch.pieces`, leaving `scratch.lit`.
@@ -434,6 +512,7 @@ impl<const C: usize> StageLights<C> {
         tolerance: f64,
         scratch: &mut Scratch,
         out: &mut StageShade<C>,
+        base: usize,
     ) -> [f64; C] {
         let mut total = [0.0; C];
         if scratch.pieces.is_empty() {
@@ -460,6 +539,13 @@ impl<const C: usize> StageLights<C> {
         Self::unshadowed(p.shadows.as_ref(), bvh, ray, scratch, &visible);
         out.shadow_rays += traced.get();
         if scratch.lit.is_empty() {
+            // In shadow all along: the code's other cones, as below.
+            for (i, &k) in l.kinks().as_slice().iter().enumerate() {
+                if k != l.cos_reach {
+                    ray_cone_intervals(ray.origin, ray.dir, 0.0, ray.s_max, l.position, l.frame.axis, k, &mut scratch.kink);
+                    out.topology |= interval_bits(&scratch.kink, ray.s_max) << (base + 4 * i).min(63);
+                }
+            }
             return total;
         }
         let (o, d) = (ray.origin, ray.dir);
@@ -475,13 +561,14 @@ impl<const C: usize> StageLights<C> {
         for m in media {
             m.breakpoints(ray, &mut scratch.cuts);
         }
-        for &k in l.kinks().as_slice() {
+        for (i, &k) in l.kinks().as_slice().iter().enumerate() {
             // The bounding cone's own surface ends the lit segments already
             // (its crossings are the ends of `scratch.cone`): no cut inside.
             if k == l.cos_reach {
                 continue;
             }
             ray_cone_intervals(o, d, 0.0, ray.s_max, l.position, l.frame.axis, k, &mut scratch.kink);
+            out.topology |= interval_bits(&scratch.kink, ray.s_max) << (base + 4 * i).min(63);
             for &(a, b) in &scratch.kink {
                 scratch.cuts.push(a);
                 scratch.cuts.push(b);
