@@ -261,8 +261,10 @@ def test_interpolated_pixels_are_within_their_estimate(name: str, scale: int) ->
         outside = (err > est + 2e-7 * np.abs(ref)).any(-1) & changed
         beyond_tol = (err > tol * np.abs(ref) + 2e-7 * np.abs(ref)).any(-1) & changed
         interpolated = report["stats"]["pixels_interpolated"]
-        print(f"{name} ×{scale}, tolerance {tol}: {interpolated} interpolated, {changed.sum()} changed, "
-              f"{outside.sum()} outside the estimate, {beyond_tol.sum()} beyond the tolerance")
+        print(
+            f"{name} ×{scale}, tolerance {tol}: {interpolated} interpolated, {changed.sum()} changed, "
+            f"{outside.sum()} outside the estimate, {beyond_tol.sum()} beyond the tolerance"
+        )
         assert outside.sum() == 0 and beyond_tol.sum() == 0
         assert np.isfinite(got).all() and np.isfinite(est).all()
         if name == "spot_box_occluder":
