@@ -482,6 +482,12 @@ pub struct ShadowWedges {
     wedges: Vec<Wedge>,
     nodes: Vec<Node>,
     grid: Option<VisibilityGrid>,
+    /// When every caster lies on one plane and the light is off it: the
+    /// light's side `{x : n·x ≥ offset}` as `(n, offset)`, the plane itself
+    /// included (offset lowered by 1e-9 relative). A shadow lies behind its
+    /// caster, so nothing on that side is shadowed (a floor shadows only
+    /// what is under it).
+    free_side: Option<(DVec3, f64)>,
     /// Triangles inside the illumination volume.
     pub triangles_used: usize,
     /// Triangles outside it (cast nothing for this light).
@@ -542,6 +548,9 @@ impl ShadowWedges {
         let mut points: Vec<DVec3> = Vec::new();
         // Edge (lo, hi) → (net side count, any coplanar neighbour).
         let mut edges: HashMap<(u32, u32), (i32, bool)> = HashMap::new();
+        // The plane of the first caster, while every caster lies on it.
+        let mut plane: Option<(DVec3, f64, f64)> = None;
+        let mut coplanar_casters = true;
         for mesh in meshes {
             let ids: Vec<u32> = mesh
                 .positions
@@ -567,6 +576,17 @@ impl ShadowWedges {
                     continue;
                 }
                 used += 1;
+                if coplanar_casters {
+                    match plane {
+                        None => match (b - a).cross(c - a).try_normalize() {
+                            Some(n) => plane = Some((n, n.dot(a), 1e-9 * (1.0 + a.abs().max_element() + radius))),
+                            None => coplanar_casters = false,
+                        },
+                        Some((n, off, eps)) => {
+                            coplanar_casters = [a, b, c].iter().all(|p| (n.dot(*p) - off).abs() <= eps);
+                        }
+                    }
+                }
                 for k in 0..3 {
                     let (i, j, o) = (v[k], v[(k + 1) % 3], v[(k + 2) % 3]);
                     if i == j {
@@ -596,11 +616,26 @@ impl ShadowWedges {
                 }
             }
         }
+        // The light's side of the casters' one plane, if it has one.
+        let free_side = plane.filter(|_| coplanar_casters).and_then(|(n, off, eps)| {
+            let side = match projector {
+                Projector::Point(light) => n.dot(light) - off,
+                Projector::Directional(to_light) => n.dot(to_light) * (1.0 + off.abs()),
+            };
+            if side > eps {
+                Some((n, off - eps))
+            } else if side < -eps {
+                Some((-n, -off - eps))
+            } else {
+                None
+            }
+        });
         let mut s = ShadowWedges {
             projector,
             wedges,
             nodes: Vec::new(),
             grid: None,
+            free_side,
             triangles_used: used,
             triangles_left_out: left_out,
         };
@@ -825,6 +860,19 @@ impl ShadowWedges {
         out: &mut Vec<(f64, f64)>,
         visible: &dyn Fn(DVec3) -> bool,
     ) -> usize {
+        // On the light's side of the one plane holding every caster: lit,
+        // points on the plane (a floor hit) included — the visibility test
+        // ignores hits within the same margin.
+        if let Some((n, off)) = self.free_side {
+            let on_side = |t: f64| if t.is_finite() { n.dot(o + d * t) >= off } else { n.dot(d) > 0.0 };
+            if on_side(t0) && on_side(t1) && (t1.is_finite() || n.dot(o + d * t0) >= off) {
+                match out.last_mut() {
+                    Some(last) if last.1 >= t0 => last.1 = t1,
+                    _ => out.push((t0, t1)),
+                }
+                return 0;
+            }
+        }
         scratch.clear();
         scratch.push(t0);
         self.crossings(o, d, t0, t1, scratch);
@@ -1052,5 +1100,88 @@ mod tests {
             }
             assert!(changes > 100);
         }
+    }
+
+    /// Casters on one plane (a floor with a hole's worth of triangles, and
+    /// a tilted quad for contrast) shadow only the far side of it: segments
+    /// on the light's side (ending on the floor included) are lit whole with
+    /// no shadow ray, and segments that go under the floor agree with
+    /// sampled visibility, for a point and a parallel light.
+    #[test]
+    fn coplanar_casters_shadow_only_the_far_side() {
+        // A floor at z = 0.5 made of four triangles around a square hole.
+        let p = vec![
+            DVec3::new(-2.0, -2.0, 0.5),
+            DVec3::new(2.0, -2.0, 0.5),
+            DVec3::new(2.0, 2.0, 0.5),
+            DVec3::new(-2.0, 2.0, 0.5),
+            DVec3::new(-0.5, -0.5, 0.5),
+            DVec3::new(0.5, -0.5, 0.5),
+            DVec3::new(0.5, 0.5, 0.5),
+            DVec3::new(-0.5, 0.5, 0.5),
+        ];
+        let t = vec![
+            [0, 1, 5],
+            [0, 5, 4],
+            [1, 2, 6],
+            [1, 6, 5],
+            [2, 3, 7],
+            [2, 7, 6],
+            [3, 0, 4],
+            [3, 4, 7],
+        ];
+        let meshes = [IndexedMesh {
+            positions: &p,
+            triangles: &t,
+        }];
+        let bvh = bvh_of(&meshes);
+        for projector in [
+            Projector::Point(DVec3::new(0.3, -0.2, 3.0)),
+            Projector::Directional(DVec3::new(0.2, 0.1, 1.0).normalize()),
+        ] {
+            let sw = ShadowWedges::build(projector, &meshes, |_, _| true);
+            assert!(sw.free_side.is_some(), "{projector:?}");
+            let mut rng = 7u64;
+            let mut next = || {
+                rng = rng.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+                ((rng >> 11) as f64) / ((1u64 << 53) as f64) * 2.0 - 1.0
+            };
+            let (mut scratch, mut out) = (Vec::new(), Vec::new());
+            let (mut above, mut below) = (0, 0);
+            for _ in 0..400 {
+                let o = DVec3::new(next() * 3.0, next() * 3.0, 1.0 + next() * 0.4);
+                let d = DVec3::new(next() * 0.6, next() * 0.6, -1.0).normalize();
+                // Ends on the floor (or falls through the hole, or past it).
+                let t_end = bvh.closest_hit(o, d, 0.0, 6.0).map(|h| h.t).unwrap_or(6.0);
+                out.clear();
+                let rays = sw.lit_segments(o, d, 0.0, t_end, &mut scratch, &mut out, &|x| sw.visible(&bvh, x));
+                if (o + d * t_end).z >= 0.5 - 1e-9 {
+                    above += 1;
+                    assert_eq!(rays, 0);
+                    assert_eq!(out, vec![(0.0, t_end)]);
+                } else {
+                    below += 1;
+                }
+                for k in 0..300 {
+                    let t = t_end * (k as f64 + 0.5) / 300.0;
+                    let lit = sw.visible(&bvh, o + d * t);
+                    let listed = out.iter().any(|(a, b)| t >= *a && t <= *b);
+                    let near = out.iter().any(|(a, b)| (t - a).abs() < 1e-7 || (t - b).abs() < 1e-7);
+                    assert!(near || lit == listed, "t={t} lit={lit} listed={listed} {out:?}");
+                }
+            }
+            assert!(above > 100 && below > 20, "{above} above, {below} below");
+        }
+        // Casters off one plane: no shortcut.
+        let (pc, tc) = cube(DVec3::new(0.0, 0.0, 1.0), 0.5);
+        let cube_mesh = [IndexedMesh {
+            positions: &pc,
+            triangles: &tc,
+        }];
+        assert!(
+            ShadowWedges::build(Projector::Point(DVec3::new(0.0, 0.0, 4.0)), &cube_mesh, |_, _| true)
+                .free_side
+                .is_none()
+        );
     }
 }
