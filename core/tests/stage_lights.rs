@@ -1109,6 +1109,7 @@ fn topology_code_of_a_traced_ray_equals_the_geometric_one() {
         let s_max = bvh.closest_hit(o, d, 0.0, f64::INFINITY).map_or(f64::INFINITY, |h| h.t);
         let ray = ViewRay { origin: o, dir: d, s_max };
         let mut scratch = Scratch::default();
+        scratch.topology = true;
         let mut per = [[0.0; 3]; MAX_LIGHT_LAYERS];
         let traced = lights
             .shade(&ray, &media, Some(&bvh), 1e-3, &mut scratch, &mut per, &|v: &[f64; 3]| *v)

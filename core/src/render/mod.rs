@@ -890,6 +890,7 @@ fn shade_pixel<const C: usize>(
     x: f64,
     y: f64,
     tolerance: f64,
+    topology: bool,
     per_light: &mut [[f64; 3]],
     to_rgb: &dyn Fn(&[f64; C]) -> [f64; 3],
 ) -> PixelOut<C> {
@@ -954,6 +955,7 @@ fn shade_pixel<const C: usize>(
     } else {
         let sh = STAGE_SCRATCH.with(|cell| {
             let mut scratch = cell.borrow_mut();
+            scratch.topology = topology;
             stage_lights.shade(&ray, media, bvh, tolerance, &mut scratch, per_light, to_rgb)
         });
         for c in 0..C {
@@ -1241,6 +1243,17 @@ fn render_channels<const C: usize, const K: usize>(
     // its time on a 768×432 frame whose rays all miss the one spot). Only
     // the first `n_stage` per-light slots are ever written, so the rest stay
     // as `Sample::default()` left them.
+    // Whether the rays' topology codes are computed for the interpolation
+    // ([`smooth`]): the conditions of `smooth_on` below that do not need
+    // the unlit grid (which needs the same and more).
+    let want_topology = smooth_scene.is_ok()
+        && !need_ray
+        && !want_per_light
+        && !want_surface_t
+        && scene.output.skip_unlit_tiles
+        && matches!(scene.camera, crate::scene::Camera::Perspective(_))
+        && lights.suns.is_empty()
+        && lights.ambient.iter().all(|a| *a == 0.0);
     let sample_into = |x: f64, y: f64, out: &mut Sample<K>| {
         let per_light = &mut out.lights;
         for v in per_light.iter_mut().take(n_stage) {
@@ -1255,6 +1268,7 @@ fn render_channels<const C: usize, const K: usize>(
             x,
             y,
             tolerance,
+            want_topology,
             per_light,
             &to_rgb,
         );
@@ -1412,7 +1426,7 @@ fn render_channels<const C: usize, const K: usize>(
     let light_images: Vec<(f64, f64)> = stage_lights.points.iter().filter_map(|p| cam.project(p.light.position)).collect();
     // Pixels may be interpolated ([`smooth`]) only with unlit tiles on
     // (in-scatter layers only, perspective, stage lights only).
-    let smooth_on = smooth_scene.is_ok() && unlit_grid.is_some() && !want_per_light && !want_surface_t;
+    let smooth_on = want_topology && unlit_grid.is_some();
     const ST: usize = smooth::STENCIL;
     // Whether pixel (col, row) is left for the interpolation passes: odd
     // pixels of even rows (interpolated along x), all of odd rows (along y),

@@ -118,6 +118,9 @@ pub struct StageShade<const C: usize> {
 /// Reusable buffers of one thread.
 #[derive(Default)]
 pub struct Scratch {
+    /// Whether [`StageLights::shade`] computes the ray's topology code
+    /// ([`StageShade::topology`]; for `render::smooth`), else leaves it 0.
+    pub topology: bool,
     cone: Vec<(f64, f64)>,
     media: Vec<(f64, f64)>,
     lit: Vec<(f64, f64)>,
@@ -403,12 +406,15 @@ impl<const C: usize> StageLights<C> {
             if !scratch.pieces.is_empty() && index < 64 {
                 out.lights_crossed |= 1 << index;
             }
-            let kinks = l.kinks();
-            if let Some(i) = kinks.as_slice().iter().position(|&c| c == l.cos_reach) {
-                out.topology |= interval_bits(&scratch.cone, ray.s_max) << (base + 4 * i).min(63);
+            let light_base = base;
+            if scratch.topology {
+                let kinks = l.kinks();
+                if let Some(i) = kinks.as_slice().iter().position(|&c| c == l.cos_reach) {
+                    out.topology |= interval_bits(&scratch.cone, ray.s_max) << (base + 4 * i).min(63);
+                }
+                base += 4 * kinks.as_slice().len();
             }
-            let value = self.point_light(p, ray, media, bvh, tolerance, scratch, &mut out, base);
-            base += 4 * kinks.as_slice().len();
+            let value = self.point_light(p, ray, media, bvh, tolerance, scratch, &mut out, light_base);
             if let Some(slot) = per_light.get_mut(index) {
                 *slot = to_rgb(&value);
             }
@@ -416,8 +422,10 @@ impl<const C: usize> StageLights<C> {
         }
         for w in &self.windows {
             w.light.intervals(o, d, 0.0, ray.s_max, &mut scratch.cone);
-            out.topology |= interval_bits(&scratch.cone, ray.s_max) << base.min(63);
-            base += 4;
+            if scratch.topology {
+                out.topology |= interval_bits(&scratch.cone, ray.s_max) << base.min(63);
+                base += 4;
+            }
             intersect(&scratch.cone, &scratch.media, &mut scratch.pieces);
             if !scratch.pieces.is_empty() && index < 64 {
                 out.lights_crossed |= 1 << index;
@@ -541,7 +549,7 @@ impl<const C: usize> StageLights<C> {
         if scratch.lit.is_empty() {
             // In shadow all along: the code's other cones, as below.
             for (i, &k) in l.kinks().as_slice().iter().enumerate() {
-                if k != l.cos_reach {
+                if scratch.topology && k != l.cos_reach {
                     ray_cone_intervals(ray.origin, ray.dir, 0.0, ray.s_max, l.position, l.frame.axis, k, &mut scratch.kink);
                     out.topology |= interval_bits(&scratch.kink, ray.s_max) << (base + 4 * i).min(63);
                 }
@@ -568,7 +576,9 @@ impl<const C: usize> StageLights<C> {
                 continue;
             }
             ray_cone_intervals(o, d, 0.0, ray.s_max, l.position, l.frame.axis, k, &mut scratch.kink);
-            out.topology |= interval_bits(&scratch.kink, ray.s_max) << (base + 4 * i).min(63);
+            if scratch.topology {
+                out.topology |= interval_bits(&scratch.kink, ray.s_max) << (base + 4 * i).min(63);
+            }
             for &(a, b) in &scratch.kink {
                 scratch.cuts.push(a);
                 scratch.cuts.push(b);
