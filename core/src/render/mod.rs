@@ -1420,6 +1420,24 @@ fn render_channels<const C: usize, const K: usize>(
             None => false,
         }
     };
+    // Per row, the columns [lo, hi) outside which every pixel is unlit (the
+    // whole row without unlit tiles): the passes below skip the rest.
+    let row_spans: Vec<(usize, usize)> = (0..h)
+        .map(|y| match &unlit_grid {
+            None => (0, w),
+            Some((cols, flags)) => {
+                let ty = (y + ring) / unlit::TILE;
+                let tiles = &flags[ty * cols..(ty + 1) * cols];
+                match (tiles.iter().position(|f| !f), tiles.iter().rposition(|f| !f)) {
+                    (Some(a), Some(b)) => (
+                        (a * unlit::TILE).saturating_sub(ring).min(w),
+                        ((b + 1) * unlit::TILE).saturating_sub(ring).min(w),
+                    ),
+                    _ => (0, 0),
+                }
+            }
+        })
+        .collect();
 
     // Images of point lights: there the in-scatter has an integrable 1/r
     // peak, which the filter's lattice resolves with cells down to 1/2048 px.
@@ -1431,6 +1449,13 @@ fn render_channels<const C: usize, const K: usize>(
     // Whether pixel (col, row) is left for the interpolation passes: odd
     // pixels of even rows (interpolated along x), all of odd rows (along y),
     // with the stencil inside the frame, away from the lights' images.
+    let near_light_row: Vec<bool> = (0..h)
+        .map(|y| {
+            light_images
+                .iter()
+                .any(|&(_, iy)| (iy - (y as f64 + 0.5)).abs() <= smooth::LIGHT_IMAGE_MARGIN)
+        })
+        .collect();
     let deferred = |col: usize, row: usize| -> bool {
         if !smooth_on || (row.is_multiple_of(2) && col.is_multiple_of(2)) {
             return false;
@@ -1443,7 +1468,7 @@ fn render_channels<const C: usize, const K: usize>(
         let (x, y) = (col as f64 + 0.5, row as f64 + 0.5);
         let m = smooth::LIGHT_IMAGE_MARGIN;
         stencil_inside
-            && !light_images.iter().any(|&(ix, iy)| (ix - x).abs() <= m && (iy - y).abs() <= m)
+            && !(near_light_row[row] && light_images.iter().any(|&(ix, iy)| (ix - x).abs() <= m && (iy - y).abs() <= m))
             && !unlit(col as isize, row as isize)
     };
     // A pixel's surface (triangle + 1, 0: none) and topology code
@@ -1495,13 +1520,15 @@ fn render_channels<const C: usize, const K: usize>(
     let mut depth = vec![DEPTH_NO_HIT; if want_depth { n } else { h }];
     let mut surface = vec![0u32; n];
     let mut sun_t = vec![[1f32; 3]; if want_sun_t { n } else { h }];
-    // The interpolation reads the samples' own errors (so the error buffer
-    // is full-size then) and their topology codes ([`smooth::PRESENT`]: a
-    // code to read; the surface comes from `surface`).
-    let full_error = want_error || smooth_on;
-    let mut error = vec![[0f32; 3]; if full_error { n } else { h }];
+    // The interpolation reads the samples' own errors (the largest channel:
+    // a quarter of the memory of the error layer, whose pages each touch
+    // costs) and their topology codes ([`smooth::PRESENT`]: a code to read;
+    // the surface comes from `surface`).
+    let mut error = vec![[0f32; 3]; if want_error { n } else { h }];
+    let mut own_error = vec![0f32; if smooth_on { n } else { h }];
     let mut codes = vec![0u64; if smooth_on { n } else { h }];
-    let (sun_chunk, err_chunk) = (if want_sun_t { w } else { 1 }, if full_error { w } else { 1 });
+    let (sun_chunk, err_chunk) = (if want_sun_t { w } else { 1 }, if want_error { w } else { 1 });
+    let max_of = |e: &[f32; 3]| e[0].max(e[1]).max(e[2]);
     let (t_chunk, d_chunk) = (if need_t { w } else { 1 }, if want_depth { w } else { 1 });
     let smooth_chunk = if smooth_on { w } else { 1 };
     let done = AtomicUsize::new(0);
@@ -1522,14 +1549,17 @@ fn render_channels<const C: usize, const K: usize>(
         .zip(surface.par_chunks_mut(w))
         .zip(sun_t.par_chunks_mut(sun_chunk))
         .zip(error.par_chunks_mut(err_chunk))
+        .zip(own_error.par_chunks_mut(smooth_chunk))
         .zip(codes.par_chunks_mut(smooth_chunk))
         .enumerate()
-        .map(|(row, ((((((l_row, t_row), d_row), id_row), s_row), e_row), code_row))| {
+        .map(|(row, (((((((l_row, t_row), d_row), id_row), s_row), e_row), oe_row), code_row))| {
             let mut st = RowStats::default();
             let mut light_row = if want_per_light { vec![[0f32; 3]; n_stage * w] } else { Vec::new() };
             let mut surface_row = if want_surface_t { vec![[0f32; 3]; n_stage * w] } else { Vec::new() };
             let mut s = Sample::<K>::default();
-            for col in 0..w {
+            let (lo, hi) = row_spans[row];
+            st.unlit += (w - (hi - lo)) as u64;
+            for col in lo..hi {
                 if unlit(col as isize, row as isize) {
                     // The buffers' defaults: no in-scatter, no error; the
                     // ray-dependent layers are not requested.
@@ -1562,10 +1592,11 @@ fn render_channels<const C: usize, const K: usize>(
                 if want_sun_t {
                     s_row[col] = p.st;
                 }
-                if full_error {
+                if want_error {
                     e_row[col] = p.e;
                 }
                 if smooth_on {
+                    oe_row[col] = max_of(&p.e);
                     code_row[col] = traced_code(col as f64 + 0.5, row as f64 + 0.5, &s);
                 }
                 st.add(&s);
@@ -1646,26 +1677,31 @@ fn render_channels<const C: usize, const K: usize>(
                 }
             }
         };
-        let read = |l: &[[f32; 3]], e: &[[f32; 3]], id: &[u32], code: &[u64], i: usize| -> smooth::StencilSample {
-            (code[i] & smooth::PRESENT != 0).then(|| (l[i], e[i], (group_of(id[i]), code[i])))
+        let read = |l: &[[f32; 3]], e: &[f32], id: &[u32], code: &[u64], i: usize| -> smooth::StencilSample {
+            (code[i] & smooth::PRESENT != 0).then(|| (l[i], [e[i]; 3], (group_of(id[i]), code[i])))
         };
         let along_x: Vec<RowStats> = inscatter
             .par_chunks_mut(w)
             .zip(surface.par_chunks_mut(w))
-            .zip(error.par_chunks_mut(w))
+            .zip(error.par_chunks_mut(err_chunk))
+            .zip(own_error.par_chunks_mut(w))
             .zip(codes.par_chunks_mut(w))
             .enumerate()
             .filter(|(row, _)| row.is_multiple_of(2))
-            .map(|(row, (((l_row, id_row), e_row), code_row))| {
+            .map(|(row, ((((l_row, id_row), e_row), oe_row), code_row))| {
                 let (mut st, mut s, mut buf) = (RowStats::default(), Sample::<K>::default(), Vec::new());
-                for col in (1..w).step_by(2) {
+                let (lo, hi) = row_spans[row];
+                for col in (lo | 1..hi).step_by(2) {
                     if !deferred(col, row) {
                         continue;
                     }
                     let stencil: [smooth::StencilSample; 6] =
-                        std::array::from_fn(|k| read(l_row, e_row, id_row, code_row, col + 2 * k - ST));
+                        std::array::from_fn(|k| read(l_row, oe_row, id_row, code_row, col + 2 * k - ST));
                     let (l, e, id, code) = fill(col, row, &stencil, &mut st, &mut s, &mut buf);
-                    (l_row[col], e_row[col], id_row[col], code_row[col]) = (l, e, id, code);
+                    (l_row[col], oe_row[col], id_row[col], code_row[col]) = (l, max_of(&e), id, code);
+                    if want_error {
+                        e_row[col] = e;
+                    }
                 }
                 st
             })
@@ -1677,12 +1713,13 @@ fn render_channels<const C: usize, const K: usize>(
                 let row = 2 * half + 1;
                 let (mut st, mut s, mut buf) = (RowStats::default(), Sample::<K>::default(), Vec::new());
                 let mut out: Filled = Vec::with_capacity(w);
-                for col in 0..w {
+                let (lo, hi) = row_spans[row];
+                for col in lo..hi {
                     if !deferred(col, row) {
                         continue;
                     }
                     let stencil: [smooth::StencilSample; 6] =
-                        std::array::from_fn(|k| read(&inscatter, &error, &surface, &codes, (row + 2 * k - ST) * w + col));
+                        std::array::from_fn(|k| read(&inscatter, &own_error, &surface, &codes, (row + 2 * k - ST) * w + col));
                     let (l, e, id, code) = fill(col, row, &stencil, &mut st, &mut s, &mut buf);
                     out.push((col, l, e, id, code));
                 }
@@ -1692,11 +1729,14 @@ fn render_channels<const C: usize, const K: usize>(
         inscatter
             .par_chunks_mut(2 * w)
             .zip(surface.par_chunks_mut(2 * w))
-            .zip(error.par_chunks_mut(2 * w))
+            .zip(error.par_chunks_mut(2 * err_chunk))
             .zip(&along_y)
             .for_each(|(((l_rows, id_rows), e_rows), (out, _))| {
                 for &(col, l, e, id, _) in out {
-                    (l_rows[w + col], e_rows[w + col], id_rows[w + col]) = (l, e, id);
+                    (l_rows[w + col], id_rows[w + col]) = (l, id);
+                    if want_error {
+                        e_rows[w + col] = e;
+                    }
                 }
             });
         for st in along_x.iter().chain(along_y.iter().map(|(_, st)| st)) {
@@ -1704,9 +1744,7 @@ fn render_channels<const C: usize, const K: usize>(
         }
     }
     drop(codes);
-    if !want_error {
-        error = vec![[0f32; 3]; h];
-    }
+    drop(own_error);
     t = report.time("render", t);
 
     // Pass 2: Blender's pixel filter where the centre sample is not good enough.
