@@ -151,18 +151,19 @@ def test_unlit_tiles_are_left_out_without_changing_a_pixel(name: str) -> None:
     assert with_depth["stats"]["pixels_unlit"] == 0
 
 
-@pytest.mark.parametrize(
-    "case",
-    ["half_degree_beam", "beam_away_from_camera", "camera_beside_the_apex", "wide_spot_179deg", "window_shaft"],
-)
-def test_unlit_tiles_on_extreme_beams(case: str) -> None:
-    """The unlit-tile test on purpose at its edges: a 0.5° beam (a sliver of
-    lit tiles), a beam pointing away from a camera behind the light (its cone
-    still in view), the eye 1 mm beside the apex (the cone fills half the
-    view), a 179° spot (wider than a hemisphere: no tile can be unlit), and a
-    window light's shaft beside the beam (its prism separated like a cone).
-    Every case gives the same layers bit for bit with every pixel traced."""
-    scene = json.loads((DATA / "narrow_beam_5deg.json").read_text())
+# Sunlight through a 2 m skylight beside the narrow beam's spot.
+SKYLIGHT = {
+    "type": "window",
+    "name": "skylight",
+    "direction_to_light": [0.3, 0.2, 1.0],
+    "irradiance_w_m2": 50,
+    "aperture": [[-1, -1, 6], [1, -1, 6], [1, 1, 6], [-1, 1, 6]],
+}
+
+
+def _extreme_beam(scene: dict, case: str) -> dict:
+    """The narrow beam's scene changed for one extreme case of the tests below
+    (other cases leave it as it is)."""
     spot = scene["lights"][0]
     if case == "half_degree_beam":
         spot["spot_size_deg"] = 0.5
@@ -176,16 +177,22 @@ def test_unlit_tiles_on_extreme_beams(case: str) -> None:
     elif case == "wide_spot_179deg":
         spot["spot_size_deg"] = 179.0
     elif case == "window_shaft":
-        # Sunlight through a 2 m skylight beside the spot: its prism is tested too.
-        scene["lights"].append(
-            {
-                "type": "window",
-                "name": "skylight",
-                "direction_to_light": [0.3, 0.2, 1.0],
-                "irradiance_w_m2": 50,
-                "aperture": [[-1, -1, 6], [1, -1, 6], [1, 1, 6], [-1, 1, 6]],
-            }
-        )
+        scene["lights"].append(dict(SKYLIGHT))
+    return scene
+
+
+@pytest.mark.parametrize(
+    "case",
+    ["half_degree_beam", "beam_away_from_camera", "camera_beside_the_apex", "wide_spot_179deg", "window_shaft"],
+)
+def test_unlit_tiles_on_extreme_beams(case: str) -> None:
+    """The unlit-tile test on purpose at its edges: a 0.5° beam (a sliver of
+    lit tiles), a beam pointing away from a camera behind the light (its cone
+    still in view), the eye 1 mm beside the apex (the cone fills half the
+    view), a 179° spot (wider than a hemisphere: no tile can be unlit), and a
+    window light's shaft beside the beam (its prism separated like a cone).
+    Every case gives the same layers bit for bit with every pixel traced."""
+    scene = _extreme_beam(json.loads((DATA / "narrow_beam_5deg.json").read_text()), case)
     layers = ["inscatter", "error"]
     plain = {"tolerance": 0.05, "interpolate_smooth_pixels": False}
     skipped, report = _render_layers(scene, layers=layers, **plain)
@@ -280,26 +287,11 @@ def test_interpolation_on_extreme_beams(case: str) -> None:
     whose samples may miss it while the pixel between hits it: the pixel's own
     cone test sees it), the eye 1 mm beside the apex (the light's image in
     view: its neighbourhood is traced), a window light's shaft beside the
-    beam, and the beam in height fog instead of haze. Against every pixel
-    traced to 1e-7: every changed pixel is within its estimate."""
-    scene = _scaled("narrow_beam_5deg", 2)
-    spot = scene["lights"][0]
-    if case == "half_degree_beam":
-        spot["spot_size_deg"] = 0.5
-    elif case == "camera_beside_the_apex":
-        scene["camera"]["position"] = [-9.0, 1.999, 6.0]
-        scene["camera"]["orientation"]["look_at"]["target"] = [-9.0, 12.0, 6.0]
-    elif case == "window_shaft":
-        scene["lights"].append(
-            {
-                "type": "window",
-                "name": "skylight",
-                "direction_to_light": [0.3, 0.2, 1.0],
-                "irradiance_w_m2": 50,
-                "aperture": [[-1, -1, 6], [1, -1, 6], [1, 1, 6], [-1, 1, 6]],
-            }
-        )
-    elif case == "height_fog":
+    beam (rays crossing its prism are traced: its edges are kinks the codes
+    do not record), and the beam in height fog instead of haze. Against every
+    pixel traced to 1e-7: every pixel is within its estimate."""
+    scene = _extreme_beam(_scaled("narrow_beam_5deg", 2), case)
+    if case == "height_fog":
         scene["media"] = [
             {
                 "type": "height_fog",

@@ -450,10 +450,12 @@ impl<const C: usize> StageLights<C> {
     /// which a point light's distribution has a kink or ends, and every
     /// window prism, 4 bits: how many intervals of `[0, s_max]` lie inside
     /// it (0, 1 or 2+), whether the first starts at 0 and whether the last
-    /// ends at `s_max`. Bit `k` of `shadowed`, for the lights crossed, is
-    /// or-ed into the top bit (kept free by [`StageLights::topology_bits`]
-    /// ≤ 63). Rays with equal codes cross the same boundaries in the same
-    /// order, so the in-scatter is smooth between them.
+    /// ends at `s_max`. When a light the ray crosses may be shadowed
+    /// (`may_shadow(k)`, `k` in [`StageLights::names`] order) the top bit
+    /// (63) is set; the cones' bits stay below bit 62 when
+    /// [`StageLights::topology_bits`] ≤ 62. Rays with equal codes cross the
+    /// same boundaries in the same order, so the in-scatter is smooth
+    /// between them.
     pub fn topology(&self, ray: &ViewRay, buf: &mut Vec<(f64, f64)>, may_shadow: &dyn Fn(usize) -> bool) -> u64 {
         let (o, d, end) = (ray.origin, ray.dir, ray.s_max);
         let mut code = 0u64;
