@@ -1532,14 +1532,6 @@ fn render_channels<const C: usize, const K: usize>(
     let (t_chunk, d_chunk) = (if need_t { w } else { 1 }, if want_depth { w } else { 1 });
     let smooth_chunk = if smooth_on { w } else { 1 };
     let done = AtomicUsize::new(0);
-    let px_of = |s: &Sample<K>| Px {
-        l: s.l.map(|v| v as f32),
-        t: s.t.map(|v| v.clamp(0.0, 1.0) as f32),
-        d: if s.hit { s.depth as f32 } else { DEPTH_NO_HIT },
-        id: s.surface,
-        st: s.st.map(|v| v.clamp(0.0, 1.0) as f32),
-        e: s.e.map(|v| v as f32),
-    };
     // Per row: its stats, and the per-light in-scatter and surface-transmittance rows.
     type RowOut = (RowStats, Vec<[f32; 3]>, Vec<[f32; 3]>);
     let row_stats: Vec<RowOut> = inscatter
@@ -1580,23 +1572,23 @@ fn render_channels<const C: usize, const K: usize>(
                         surface_row[k * w + col] = surface_transmittance_of(&s, k);
                     }
                 }
-                let p = px_of(&s);
-                l_row[col] = p.l;
+                let e = s.e.map(|v| v as f32);
+                l_row[col] = s.l.map(|v| v as f32);
                 if need_t {
-                    t_row[col] = p.t;
+                    t_row[col] = s.t.map(|v| v.clamp(0.0, 1.0) as f32);
                 }
                 if want_depth {
-                    d_row[col] = p.d;
+                    d_row[col] = if s.hit { s.depth as f32 } else { DEPTH_NO_HIT };
                 }
-                id_row[col] = p.id;
+                id_row[col] = s.surface;
                 if want_sun_t {
-                    s_row[col] = p.st;
+                    s_row[col] = s.st.map(|v| v.clamp(0.0, 1.0) as f32);
                 }
                 if want_error {
-                    e_row[col] = p.e;
+                    e_row[col] = e;
                 }
                 if smooth_on {
-                    oe_row[col] = max_of(&p.e);
+                    oe_row[col] = max_of(&e);
                     code_row[col] = traced_code(col as f64 + 0.5, row as f64 + 0.5, &s);
                 }
                 st.add(&s);
@@ -2416,17 +2408,6 @@ struct RowStats {
 /// `max` that keeps a NaN (f64::max drops it, which would hide a bad pixel).
 fn nan_max(a: f64, b: f64) -> f64 {
     if a.is_nan() || b.is_nan() { f64::NAN } else { a.max(b) }
-}
-
-/// What pass 1 writes for one pixel.
-#[derive(Debug, Clone, Copy)]
-struct Px {
-    l: [f32; 3],
-    t: [f32; 3],
-    d: f32,
-    id: u32,
-    st: [f32; 3],
-    e: [f32; 3],
 }
 
 impl RowStats {
