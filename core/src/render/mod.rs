@@ -1487,18 +1487,18 @@ fn render_channels<const C: usize, const K: usize>(
             dir,
             s_max: (end - start).max(0.0),
         };
-        let end_point = cam.position + dir * end;
         (
             surface,
-            smooth::PRESENT | stage_lights.topology(&ray, buf, &|k| casters[k].may_shadow(end_point)),
+            smooth::PRESENT | stage_lights.topology(&ray, buf, &|k| casters[k].may_shadow(cam.position, dir, end)),
         )
     };
     // The same for a traced sample, from its own surface hit and cone tests.
     let traced_code = |x: f64, y: f64, s: &Sample<K>| -> u64 {
         let Ok((_, casters)) = &smooth_scene else { return 0 };
         let end = if s.hit { s.depth } else { cam.clip_end };
-        let end_point = cam.position + cam.direction(x, y) * end;
-        let shadowed = (0..casters.len()).any(|k| (k >= 64 || s.stage_crossed >> k & 1 == 1) && casters[k].may_shadow(end_point));
+        let dir = cam.direction(x, y);
+        let shadowed =
+            (0..casters.len()).any(|k| (k >= 64 || s.stage_crossed >> k & 1 == 1) && casters[k].may_shadow(cam.position, dir, end));
         smooth::PRESENT | s.topology | u64::from(shadowed) << 63
     };
     // The plane group + 1 of a surface (triangle + 1; 1: none).

@@ -18,8 +18,9 @@
 //!    ray's start and the last ends at its end;
 //! 3. are not shadowed: every light they cross has no shadow casters, or
 //!    casters on one plane with the light and the eye on the same side, and
-//!    the rays end on the eye's side of it (a caster shadows only the far
-//!    side of its plane) — part of the code too;
+//!    the rays end on the eye's side of it, or have no end and do not head
+//!    towards it (a caster shadows only the far side of its plane) — part
+//!    of the code too;
 //!
 //! in media without internal boundaries (homogeneous without bounds, height
 //! fog) and lights whose distribution is smooth between its kinks (Blender
@@ -199,15 +200,23 @@ impl Casters {
         }
     }
 
-    /// Whether a ray crossing the light and ending at `end` may be shadowed.
-    pub fn may_shadow(&self, end: DVec3) -> bool {
+    /// Whether a ray from the eye `eye` along the unit `dir`, ending at
+    /// distance `t_end` (m, may be infinite: no surface, no clip end), that
+    /// crosses the light may be shadowed.
+    pub fn may_shadow(&self, eye: DVec3, dir: DVec3, t_end: f64) -> bool {
         match *self {
             Casters::None => false,
-            Casters::Plane { normal, offset } => {
+            Casters::Plane { normal, offset } if t_end.is_finite() => {
                 // On the plane (a floor hit) counts as the eye's side.
+                let end = eye + dir * t_end;
                 let tol = 1e-9 * (1.0 + offset.abs() + end.abs().max_element());
                 !end.is_finite() || normal.dot(end) - offset < -tol
             }
+            // A ray without an end stays on the eye's side (the eye is
+            // strictly on it) unless it heads towards the plane: the plane
+            // is infinite, its casters are not, so beyond them the ray may
+            // reach the shadowed side.
+            Casters::Plane { normal, .. } => !(normal.dot(dir) >= 0.0),
             Casters::Any => true,
         }
     }
@@ -389,11 +398,19 @@ mod tests {
             normal: DVec3::Z,
             offset: 0.0,
         };
-        assert!(!floor.may_shadow(DVec3::new(3.0, 1.0, 0.0)), "a floor hit");
-        assert!(!floor.may_shadow(DVec3::new(3.0, 1.0, 2.0)));
-        assert!(floor.may_shadow(DVec3::new(3.0, 1.0, -1e-3)));
-        assert!(floor.may_shadow(DVec3::new(f64::INFINITY, 0.0, 0.0)));
-        assert!(!Casters::None.may_shadow(DVec3::new(0.0, 0.0, -5.0)));
-        assert!(Casters::Any.may_shadow(DVec3::ZERO));
+        let eye = DVec3::new(0.0, -9.0, 2.0);
+        let end_at = |p: DVec3| (eye, (p - eye).normalize(), (p - eye).length());
+        let shadows = |c: &Casters, (e, d, t): (DVec3, DVec3, f64)| c.may_shadow(e, d, t);
+        assert!(!shadows(&floor, end_at(DVec3::new(3.0, 1.0, 0.0))), "a floor hit");
+        assert!(!shadows(&floor, end_at(DVec3::new(3.0, 1.0, 2.0))));
+        assert!(shadows(&floor, end_at(DVec3::new(3.0, 1.0, -1e-3))));
+        // No end: upwards and level stay on the eye's side, downwards not.
+        assert!(!floor.may_shadow(eye, DVec3::new(0.0, 0.8, 0.6), f64::INFINITY));
+        assert!(!floor.may_shadow(eye, DVec3::X, f64::INFINITY));
+        assert!(floor.may_shadow(eye, DVec3::new(0.0, 0.8, -0.6), f64::INFINITY));
+        assert!(floor.may_shadow(eye, DVec3::new(0.0, 1.0, -1e-12).normalize(), f64::INFINITY));
+        assert!(floor.may_shadow(eye, DVec3::new(f64::NAN, 0.0, 0.0), f64::INFINITY), "NaN: may");
+        assert!(!Casters::None.may_shadow(eye, DVec3::new(0.0, 0.0, -1.0), 7.0));
+        assert!(Casters::Any.may_shadow(eye, DVec3::Z, 1.0));
     }
 }
