@@ -216,7 +216,7 @@ impl Casters {
             // strictly on it) unless it heads towards the plane: the plane
             // is infinite, its casters are not, so beyond them the ray may
             // reach the shadowed side.
-            Casters::Plane { normal, .. } => !(normal.dot(dir) >= 0.0),
+            Casters::Plane { normal, .. } => normal.dot(dir) < 0.0 || normal.dot(dir).is_nan(),
             Casters::Any => true,
         }
     }
