@@ -2021,15 +2021,24 @@ fn render_channels<const C: usize, const K: usize>(
                 let mut row_max = vec![0.0f32; (tb - ta + 2 * r) * lw];
                 let mut scales = vec![0.0f32; cells];
                 if blo < bhi {
+                    // Each sample's largest channel once, then the sliding
+                    // maxima (max is exact: the same values in any order).
+                    let mut largest_of_row = vec![0.0f32; bhi - blo + 2 * r];
                     for (py, out) in (ta..tb + 2 * r).zip(row_max.chunks_mut(lw)) {
-                        let prow = &padded[py * pw..(py + 1) * pw];
-                        for x in blo..bhi {
-                            out[x - c0] = prow[x..=x + 2 * r].iter().fold(0.0f32, |m, p| m.max(lmax(&p.0)));
+                        let prow = &padded[py * pw + blo..py * pw + bhi + 2 * r];
+                        for (m, p) in largest_of_row.iter_mut().zip(prow) {
+                            *m = lmax(&p.0);
+                        }
+                        for (o, win) in out[blo - c0..bhi - c0].iter_mut().zip(largest_of_row.windows(2 * r + 1)) {
+                            *o = win.iter().fold(0.0f32, |m, v| m.max(*v));
                         }
                     }
                     for (y, out) in (ta..tb).zip(scales.chunks_mut(lw)) {
-                        for x in blo..bhi {
-                            out[x - c0] = (0..=2 * r).fold(0.0f32, |m, k| m.max(row_max[(y - ta + k) * lw + x - c0]));
+                        for k in 0..=2 * r {
+                            let src = &row_max[(y - ta + k) * lw..(y - ta + k + 1) * lw];
+                            for (o, v) in out[blo - c0..bhi - c0].iter_mut().zip(&src[blo - c0..bhi - c0]) {
+                                *o = o.max(*v);
+                            }
                         }
                     }
                 }
@@ -2063,6 +2072,36 @@ fn render_channels<const C: usize, const K: usize>(
                     let (xa, xb) = (x.saturating_sub(1), (x + 2).min(w));
                     (y.saturating_sub(1)..(y + 2).min(h)).flat_map(move |yy| (xa..xb).map(move |xx| at(xx, yy)))
                 };
+                // The 3×3 maxima of the in-scatter terms, separably: first
+                // along x (within the frame) on every term row.
+                let mut l_t_x = vec![0.0f64; cells];
+                for y in ta..tb {
+                    for x in blo..bhi {
+                        let (xa, xb) = (x.saturating_sub(1), (x + 2).min(w));
+                        l_t_x[at(x, y)] = (xa..xb).fold(0.0f64, |m, xx| m.max(l_t[at(xx, y)]));
+                    }
+                }
+                // Which surfaces each pixel's silhouette test sees: the least
+                // and greatest surface key within ±r, separably (a pixel
+                // whose window holds one surface has no silhouette).
+                let key_rows = fb - fa + 2 * r;
+                let (mut key_lo, mut key_hi) = (vec![0u32; key_rows * lw], vec![0u32; key_rows * lw]);
+                if blo < bhi {
+                    for (k, py) in (fa..fb + 2 * r).enumerate() {
+                        let prow = &padded[py * pw + blo..py * pw + bhi + 2 * r];
+                        for (x, win) in (blo..bhi).zip(prow.windows(2 * r + 1)) {
+                            let (a, b) = win.iter().fold((u32::MAX, 0), |(a, b), p| (a.min(p.2), b.max(p.2)));
+                            (key_lo[k * lw + x - c0], key_hi[k * lw + x - c0]) = (a, b);
+                        }
+                    }
+                }
+                let one_surface = |x: usize, y: usize| {
+                    let col = |k: usize| (key_lo[k * lw + x - c0], key_hi[k * lw + x - c0]);
+                    let (a, b) = (y - fa..=y - fa + 2 * r)
+                        .map(col)
+                        .fold((u32::MAX, 0), |(a, b), (c, d)| (a.min(c), b.max(d)));
+                    a == b
+                };
                 // Rows fa..fb: the nearby terms (kept for the estimate) and the first flags.
                 let mut first = vec![false; (fb - fa) * lw];
                 let mut near = vec![0.0f64; (fb - fa) * lw];
@@ -2074,8 +2113,17 @@ fn render_channels<const C: usize, const K: usize>(
                             continue;
                         }
                         let (k, i) = (at_first(x, y), at(x, y));
-                        near[k] = around(x, y).fold(s_t[i], |m, j| m.max(l_t[j]));
-                        first[k] = t_t[i] > tolerance || near[k] > tolerance * f64::from(scales[i]) || silhouette(x, y);
+                        near[k] = (y.saturating_sub(1)..(y + 2).min(h)).fold(s_t[i], |m, yy| m.max(l_t_x[at(x, yy)]));
+                        first[k] =
+                            t_t[i] > tolerance || near[k] > tolerance * f64::from(scales[i]) || (!one_surface(x, y) && silhouette(x, y));
+                    }
+                }
+                // The first flags dilated along x (within the frame).
+                let mut first_x = vec![false; (fb - fa) * lw];
+                for y in fa..fb {
+                    for x in blo..bhi {
+                        let (xa, xb) = (x.saturating_sub(1), (x + 2).min(w));
+                        first_x[at_first(x, y)] = (xa..xb).any(|xx| first[at_first(xx, y)]);
                     }
                 }
                 let mut out = BandOut {
@@ -2088,16 +2136,22 @@ fn render_channels<const C: usize, const K: usize>(
                     let (lo, hi) = frame_spans[y];
                     let row = (y - y0) * w;
                     for x in lo..hi {
-                        let (xa, xb) = (x.saturating_sub(1), (x + 2).min(w));
-                        flag_rows[row + x] = (y.saturating_sub(1)..(y + 2).min(h)).any(|yy| (xa..xb).any(|xx| first[at_first(xx, yy)]));
+                        flag_rows[row + x] = (y.saturating_sub(1)..(y + 2).min(h)).any(|yy| first_x[at_first(x, yy)]);
                         scale_rows[row + x] = scales[at(x, y)];
                     }
+                    // Flags outside the span come only from the lights' images.
+                    let (mut xa, mut xb) = (lo, hi);
                     for (xs, ys) in &light_rects {
                         if ys.contains(&y) {
                             flag_rows[row + xs.start..row + xs.end].fill(true);
+                            (xa, xb) = if xa < xb {
+                                (xa.min(xs.start), xb.max(xs.end))
+                            } else {
+                                (xs.start, xs.end)
+                            };
                         }
                     }
-                    for x in 0..w {
+                    for x in xa..xb {
                         let i = y * w + x;
                         if flag_rows[row + x] {
                             out.edges.push(i);
