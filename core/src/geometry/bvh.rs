@@ -72,6 +72,7 @@
 //! is written here (std + `glam` only).
 
 use glam::{BVec3, DVec3};
+use smallvec::SmallVec;
 
 /// Largest number of triangles in one leaf.
 pub const MAX_LEAF: usize = 4;
@@ -84,8 +85,11 @@ const COST_TRAVERSAL: f64 = 1.0;
 const COST_INTERSECT: f64 = 1.5;
 /// Depth from which nodes are split at the object median (bounds the depth).
 const MAX_SAH_DEPTH: u32 = 64;
-/// Traversal stack size; the tree is at most `MAX_SAH_DEPTH + 32` deep.
-const STACK_SIZE: usize = 128;
+/// Traversal stack kept inline (the tree is at most `MAX_SAH_DEPTH + 32`
+/// deep; a deeper stack spills to the heap). `SmallVec` leaves it
+/// uninitialised: a zeroed `[_; 128]` array cost a 1.5 kB memset per ray,
+/// a fifth of a surface hit on a floor.
+const STACK_INLINE: usize = 64;
 /// Relative widening of box entry/exit distances (`2^-32`).
 const BOX_SLACK: f64 = 1.0 / 4_294_967_296.0;
 /// Relative threshold under which `|e1 × e2| / (|e1| |e2|)` counts as zero area (`2^-46`).
@@ -320,9 +324,8 @@ impl Bvh {
         let mut t_hi = t_max;
         ray.enter(root, t_min, t_hi)?;
         let mut best: Option<(f64, f64, f64, usize)> = None;
-        let mut stack_node = [0u32; STACK_SIZE];
-        let mut stack_t = [0f64; STACK_SIZE];
-        let mut sp = 0usize;
+        // Far children and their entry distances.
+        let mut stack: SmallVec<[(u32, f64); STACK_INLINE]> = SmallVec::new();
         let mut ni = 0usize;
         loop {
             let node = &nodes[ni];
@@ -341,9 +344,7 @@ impl Bvh {
                 match (hl, hr) {
                     (Some(tl), Some(tr)) => {
                         let (near, far, t_far) = if tl <= tr { (left, left + 1, tr) } else { (left + 1, left, tl) };
-                        stack_node[sp] = far as u32;
-                        stack_t[sp] = t_far;
-                        sp += 1;
+                        stack.push((far as u32, t_far));
                         ni = near;
                         continue;
                     }
@@ -360,17 +361,16 @@ impl Bvh {
             }
             // Pop the next node whose entry distance is not beyond the best hit.
             loop {
-                if sp == 0 {
+                let Some((node, t_entry)) = stack.pop() else {
                     return best.map(|(t, u, v, k)| RayHit {
                         t,
                         triangle: self.leaf_ids[k],
                         u,
                         v,
                     });
-                }
-                sp -= 1;
-                if stack_t[sp] <= t_hi {
-                    ni = stack_node[sp] as usize;
+                };
+                if t_entry <= t_hi {
+                    ni = node as usize;
                     break;
                 }
             }
@@ -394,8 +394,7 @@ impl Bvh {
         if ray.enter(root, t_min, t_max).is_none() {
             return false;
         }
-        let mut stack = [0u32; STACK_SIZE];
-        let mut sp = 0usize;
+        let mut stack: SmallVec<[u32; STACK_INLINE]> = SmallVec::new();
         let mut ni = 0usize;
         loop {
             let node = &nodes[ni];
@@ -412,8 +411,7 @@ impl Bvh {
                 let hr = ray.enter(&nodes[left + 1], t_min, t_max).is_some();
                 if hl {
                     if hr {
-                        stack[sp] = (left + 1) as u32;
-                        sp += 1;
+                        stack.push((left + 1) as u32);
                     }
                     ni = left;
                     continue;
@@ -423,11 +421,10 @@ impl Bvh {
                     continue;
                 }
             }
-            if sp == 0 {
+            let Some(next) = stack.pop() else {
                 return false;
-            }
-            sp -= 1;
-            ni = stack[sp] as usize;
+            };
+            ni = next as usize;
         }
     }
 }
