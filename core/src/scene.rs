@@ -928,8 +928,9 @@ pub struct Output {
     /// Interpolate pixels where the in-scatter is provably smooth (inside a
     /// beam, away from silhouettes, shadows and lights' images), when only
     /// in-scatter layers (and the error) are requested and unlit tiles are
-    /// left out: every other pixel's view ray is traced, the rest are
-    /// interpolated when their error estimate meets the tolerance (see
+    /// left out: the view rays of a lattice of pixels (x and y multiples
+    /// of 4) are traced, the others are interpolated in two levels when
+    /// their error estimate meets the tolerance, else traced (see
     /// `render::smooth`). Default true; false traces every pixel.
     #[serde(default = "default_true")]
     pub interpolate_smooth_pixels: bool,

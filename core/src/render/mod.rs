@@ -1446,31 +1446,43 @@ fn render_channels<const C: usize, const K: usize>(
     // (in-scatter layers only, perspective, stage lights only).
     let smooth_on = want_topology && unlit_grid.is_some();
     const ST: usize = smooth::STENCIL;
-    // Whether pixel (col, row) is left for the interpolation passes: odd
-    // pixels of even rows (interpolated along x), all of odd rows (along y),
-    // with the stencil inside the frame, away from the lights' images.
+    // Which interpolation pass, if any, pixel (col, row) is left for: the
+    // half-spacing `s` of its level (2, the first: the pixels with even x
+    // and y not on the lattice of multiples of 4, interpolated from samples
+    // 4 px apart; 1, the second: the others, from samples 2 px apart), or 0
+    // when it is traced in
+    // pass 1. A pixel is traced when the stencil of its level leaves the
+    // frame or reaches near a light's image, or when it is unlit; on rows
+    // of its level's lattice it is interpolated along x, on the others
+    // along y.
     let near_light_row: Vec<bool> = (0..h)
         .map(|y| {
             light_images
                 .iter()
-                .any(|&(_, iy)| (iy - (y as f64 + 0.5)).abs() <= smooth::LIGHT_IMAGE_MARGIN)
+                .any(|&(_, iy)| (iy - (y as f64 + 0.5)).abs() <= 2.0 * smooth::LIGHT_IMAGE_MARGIN)
         })
         .collect();
-    let deferred = |col: usize, row: usize| -> bool {
-        if !smooth_on || (row.is_multiple_of(2) && col.is_multiple_of(2)) {
-            return false;
+    let near_light = |x: f64, y: f64, m: f64| -> bool { light_images.iter().any(|&(ix, iy)| (ix - x).abs() <= m && (iy - y).abs() <= m) };
+    let level_of = |col: usize, row: usize| -> usize {
+        if !smooth_on || (col.is_multiple_of(4) && row.is_multiple_of(4)) || unlit(col as isize, row as isize) {
+            return 0;
         }
-        let stencil_inside = if row.is_multiple_of(2) {
-            col >= ST && col + ST < w
+        let s = if col.is_multiple_of(2) && row.is_multiple_of(2) { 2 } else { 1 };
+        let reach = ST * s;
+        let stencil_inside = if row.is_multiple_of(2 * s) {
+            col >= reach && col + reach < w
         } else {
-            row >= ST && row + ST < h
+            row >= reach && row + reach < h
         };
+        let m = smooth::LIGHT_IMAGE_MARGIN * s as f64;
         let (x, y) = (col as f64 + 0.5, row as f64 + 0.5);
-        let m = smooth::LIGHT_IMAGE_MARGIN;
-        stencil_inside
-            && !(near_light_row[row] && light_images.iter().any(|&(ix, iy)| (ix - x).abs() <= m && (iy - y).abs() <= m))
-            && !unlit(col as isize, row as isize)
+        if stencil_inside && !(near_light_row[row] && near_light(x, y, m)) {
+            s
+        } else {
+            0
+        }
     };
+    let deferred = |col: usize, row: usize| -> bool { level_of(col, row) > 0 };
     // A pixel's surface (triangle + 1, 0: none) and topology code
     // ([`smooth::PRESENT`] set; 0 below it: the ray crosses no light's
     // volume, in-scatter 0), from one surface hit and the cone tests.
@@ -1624,11 +1636,12 @@ fn render_channels<const C: usize, const K: usize>(
             }
         }
     }
-    // Passes 1b and 1c: the deferred pixels, interpolated from six samples
-    // 2 px apart where that meets the tolerance ([`smooth::interpolate`]),
-    // else traced: first the odd pixels of even rows along x (in place: a
-    // row reads only its own even pixels), then the odd rows along y
-    // (reading the even rows, now complete; written back after).
+    // Passes 1b and 1c, per level: the deferred pixels, interpolated from
+    // six samples 2s px apart where that meets the tolerance
+    // ([`smooth::interpolate`]), else traced: first along x on the rows of
+    // the level's lattice (in place: a row reads only its own lattice
+    // pixels), then along y on the rows between (reading the lattice rows,
+    // now complete; written back after).
     if smooth_on {
         // One deferred pixel, given its six samples: (in-scatter, error,
         // surface, code), and what it adds to the row's statistics.
@@ -1672,67 +1685,87 @@ fn render_channels<const C: usize, const K: usize>(
         let read = |l: &[[f32; 3]], e: &[f32], id: &[u32], code: &[u64], i: usize| -> smooth::StencilSample {
             (code[i] & smooth::PRESENT != 0).then(|| (l[i], [e[i]; 3], (group_of(id[i]), code[i])))
         };
-        let along_x: Vec<RowStats> = inscatter
-            .par_chunks_mut(w)
-            .zip(surface.par_chunks_mut(w))
-            .zip(error.par_chunks_mut(err_chunk))
-            .zip(own_error.par_chunks_mut(w))
-            .zip(codes.par_chunks_mut(w))
-            .enumerate()
-            .filter(|(row, _)| row.is_multiple_of(2))
-            .map(|(row, ((((l_row, id_row), e_row), oe_row), code_row))| {
-                let (mut st, mut s, mut buf) = (RowStats::default(), Sample::<K>::default(), Vec::new());
-                let (lo, hi) = row_spans[row];
-                for col in (lo | 1..hi).step_by(2) {
-                    if !deferred(col, row) {
-                        continue;
+        // Level by level, coarse to fine: the half-spacing s = 2 fills the
+        // lattice of even pixels from the multiples of 4, s = 1 the rest.
+        for s in [2usize, 1] {
+            let along_x: Vec<RowStats> = inscatter
+                .par_chunks_mut(w)
+                .zip(surface.par_chunks_mut(w))
+                .zip(error.par_chunks_mut(err_chunk))
+                .zip(own_error.par_chunks_mut(w))
+                .zip(codes.par_chunks_mut(w))
+                .enumerate()
+                .filter(|(row, _)| row.is_multiple_of(2 * s))
+                .map(|(row, ((((l_row, id_row), e_row), oe_row), code_row))| {
+                    let (mut st, mut smp, mut buf) = (RowStats::default(), Sample::<K>::default(), Vec::new());
+                    let (lo, hi) = row_spans[row];
+                    // The first column ≡ s (mod 2s) from lo.
+                    let first = lo + (3 * s - lo % (2 * s)) % (2 * s);
+                    for col in (first.min(hi)..hi).step_by(2 * s) {
+                        if level_of(col, row) != s {
+                            continue;
+                        }
+                        let stencil: [smooth::StencilSample; 6] =
+                            std::array::from_fn(|k| read(l_row, oe_row, id_row, code_row, col + (2 * k + 1) * s - (ST + 1) * s));
+                        let (l, e, id, code) = fill(col, row, &stencil, &mut st, &mut smp, &mut buf);
+                        (l_row[col], oe_row[col], id_row[col], code_row[col]) = (l, max_of(&e), id, code);
+                        if want_error {
+                            e_row[col] = e;
+                        }
                     }
-                    let stencil: [smooth::StencilSample; 6] =
-                        std::array::from_fn(|k| read(l_row, oe_row, id_row, code_row, col + 2 * k - ST));
-                    let (l, e, id, code) = fill(col, row, &stencil, &mut st, &mut s, &mut buf);
-                    (l_row[col], oe_row[col], id_row[col], code_row[col]) = (l, max_of(&e), id, code);
-                    if want_error {
-                        e_row[col] = e;
+                    st
+                })
+                .collect();
+            type Filled = Vec<(usize, [f32; 3], [f32; 3], u32, u64)>;
+            let along_y: Vec<(Filled, RowStats)> = (0..h.div_ceil(2 * s))
+                .into_par_iter()
+                .map(|k| {
+                    let row = 2 * s * k + s;
+                    let (mut st, mut smp, mut buf) = (RowStats::default(), Sample::<K>::default(), Vec::new());
+                    let mut out: Filled = Vec::new();
+                    if row >= h {
+                        return (out, st);
                     }
-                }
-                st
-            })
-            .collect();
-        type Filled = Vec<(usize, [f32; 3], [f32; 3], u32, u64)>;
-        let along_y: Vec<(Filled, RowStats)> = (0..h / 2)
-            .into_par_iter()
-            .map(|half| {
-                let row = 2 * half + 1;
-                let (mut st, mut s, mut buf) = (RowStats::default(), Sample::<K>::default(), Vec::new());
-                let mut out: Filled = Vec::with_capacity(w);
-                let (lo, hi) = row_spans[row];
-                for col in lo..hi {
-                    if !deferred(col, row) {
-                        continue;
+                    let (lo, hi) = row_spans[row];
+                    for col in (lo.next_multiple_of(s).min(hi)..hi).step_by(s) {
+                        if level_of(col, row) != s {
+                            continue;
+                        }
+                        let stencil: [smooth::StencilSample; 6] = std::array::from_fn(|j| {
+                            read(
+                                &inscatter,
+                                &own_error,
+                                &surface,
+                                &codes,
+                                (row + (2 * j + 1) * s - (ST + 1) * s) * w + col,
+                            )
+                        });
+                        let (l, e, id, code) = fill(col, row, &stencil, &mut st, &mut smp, &mut buf);
+                        out.push((col, l, e, id, code));
                     }
-                    let stencil: [smooth::StencilSample; 6] =
-                        std::array::from_fn(|k| read(&inscatter, &own_error, &surface, &codes, (row + 2 * k - ST) * w + col));
-                    let (l, e, id, code) = fill(col, row, &stencil, &mut st, &mut s, &mut buf);
-                    out.push((col, l, e, id, code));
-                }
-                (out, st)
-            })
-            .collect();
-        inscatter
-            .par_chunks_mut(2 * w)
-            .zip(surface.par_chunks_mut(2 * w))
-            .zip(error.par_chunks_mut(2 * err_chunk))
-            .zip(&along_y)
-            .for_each(|(((l_rows, id_rows), e_rows), (out, _))| {
-                for &(col, l, e, id, _) in out {
-                    (l_rows[w + col], id_rows[w + col]) = (l, id);
-                    if want_error {
-                        e_rows[w + col] = e;
+                    (out, st)
+                })
+                .collect();
+            // Written back: the rows s mod 2s, the second of each chunk.
+            inscatter
+                .par_chunks_mut(2 * s * w)
+                .zip(surface.par_chunks_mut(2 * s * w))
+                .zip(error.par_chunks_mut(2 * s * err_chunk))
+                .zip(own_error.par_chunks_mut(2 * s * w))
+                .zip(codes.par_chunks_mut(2 * s * w))
+                .zip(&along_y)
+                .for_each(|(((((l_rows, id_rows), e_rows), oe_rows), code_rows), (out, _))| {
+                    for &(col, l, e, id, code) in out {
+                        let i = s * w + col;
+                        (l_rows[i], id_rows[i], oe_rows[i], code_rows[i]) = (l, id, max_of(&e), code);
+                        if want_error {
+                            e_rows[s * err_chunk + col] = e;
+                        }
                     }
-                }
-            });
-        for st in along_x.iter().chain(along_y.iter().map(|(_, st)| st)) {
-            stats.merge(st);
+                });
+            for st in along_x.iter().chain(along_y.iter().map(|(_, st)| st)) {
+                stats.merge(st);
+            }
         }
     }
     drop(codes);
@@ -2283,7 +2316,7 @@ fn render_channels<const C: usize, const K: usize>(
         Ok(_) if smooth_on => report.plan.left_out(
             format!("scattering integral on {} view rays", stats.interpolated),
             format!(
-                "interpolated: the 4-point cubic between samples 2 px apart that end on the same plane and cross the same light cones (blend cones included) and window prisms the same way as the pixel's own ray (its topology, one surface hit and cone tests), unshadowed, away from the lights' images; charged {} × (3/256)(|Δ⁴_L| + |Δ⁴_R|) plus the samples' own errors, within the tolerance (rays that cross no light: exactly 0)",
+                "interpolated: the 4-point cubic between samples 4 px apart (pixels with even x and y), then 2 px apart (the rest), that end on the same plane and cross the same light cones (blend cones included) and window prisms the same way as the pixel's own ray (its topology, one surface hit and cone tests), unshadowed, away from the lights' images; charged {} × (3/256)(|Δ⁴_L| + |Δ⁴_R|) plus the samples' own errors, within the tolerance (rays that cross no light: exactly 0)",
                 smooth::SAFETY
             ),
         ),
