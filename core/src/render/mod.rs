@@ -1190,6 +1190,50 @@ fn render_channels<const C: usize, const K: usize>(
             Ok((planes, casters))
         }
     };
+    // Floors that end the view rays beneath the lights' cones, for the unlit
+    // tiles ([`unlit::Floor`]): of the planes' triangles, the four largest
+    // groups by area that qualify.
+    // (Only when the unlit tiles may be used: no layer needs the view rays.)
+    let rays_needed = scene.output.layers.iter().any(|k| {
+        matches!(
+            k,
+            LayerKind::Transmittance | LayerKind::SunTransmittance | LayerKind::SurfaceTransmittancePerLight | LayerKind::Depth
+        )
+    });
+    let floors: Vec<unlit::Floor> = if scene.output.skip_unlit_tiles && !rays_needed && !tris.is_empty() && !stage_lights.points.is_empty()
+    {
+        let own;
+        let planes = match &smooth_scene {
+            Ok((p, _)) => p,
+            Err(_) => {
+                own = smooth::Planes::new(&scene.meshes, &tris);
+                &own
+            }
+        };
+        // Per plane group: its area and its triangles.
+        type Group = (f64, Vec<[DVec3; 3]>);
+        let mut by_plane: rustc_hash::FxHashMap<u32, Group> = Default::default();
+        for (i, t) in tris.iter().enumerate() {
+            let g = planes.group_of(i as u32);
+            if g > 0 {
+                let e = by_plane.entry(g).or_default();
+                e.0 += 0.5 * (t.v[1] - t.v[0]).cross(t.v[2] - t.v[0]).length();
+                e.1.push(t.v);
+            }
+        }
+        let mut groups: Vec<(u32, Group)> = by_plane.into_iter().collect();
+        groups.sort_by(|a, b| b.1.0.total_cmp(&a.1.0).then(a.0.cmp(&b.0)));
+        groups
+            .iter()
+            .take(4)
+            .filter_map(|(g, (_, t))| {
+                let (normal, offset) = planes.plane(*g);
+                unlit::Floor::new(t, normal, offset, cam.position)
+            })
+            .collect()
+    } else {
+        Vec::new()
+    };
     let bvh = if tris.is_empty() {
         report
             .plan
@@ -1403,7 +1447,7 @@ fn render_channels<const C: usize, const K: usize>(
             Some(mut volumes) if scene.output.skip_unlit_tiles && !need_ray && perspective && only_stage_light => {
                 volumes.extend(prisms);
                 let read = if ring > 0 { ring.max(2) + 1 } else { 0 };
-                Some(unlit::unlit_tiles(&cam, &volumes, ring, read as f64))
+                Some(unlit::unlit_tiles(&cam, &volumes, &floors, ring, read as f64))
             }
             _ => None,
         }

@@ -149,6 +149,12 @@ impl Planes {
     pub fn group_of(&self, triangle: u32) -> u32 {
         self.group_of.get(triangle as usize).copied().unwrap_or(0)
     }
+
+    /// The plane of group + 1 `group` (from [`Planes::group_of`], > 0):
+    /// unit normal and `normal · x` on it.
+    pub fn plane(&self, group: u32) -> (DVec3, f64) {
+        self.planes[group as usize - 1]
+    }
 }
 
 /// Where a light's shadow casters lie.

@@ -41,6 +41,20 @@
 //! normals) or a constraint normal itself satisfies all the constraints —
 //! every candidate is tried.
 //!
+//! **Floors.** A cone reaches below a floor, where no view ray that meets the
+//! floor goes: tiles whose rays all end on it would count as lit for the
+//! cone's part beneath it. A [`Floor`] is a convex polygon of triangles on
+//! one plane, watertight (every inner edge shared by two triangles with the
+//! same vertices), with the eye strictly above it. When the four corner
+//! rays of a tile head down into its plane and cross it inside the polygon
+//! (by a margin), so does every ray of the tile (the crossings of a
+//! pyramid's rays fill the convex hull of its corners' crossings), and each
+//! ends there or before (the floor is opaque). The rays' segments then lie
+//! in the convex hull of the eye `E` and the four crossings `Fᵢ`, and a
+//! plane separates that from the cone iff some unit `n` has `n·(P − E) ≥ 0`,
+//! `n·(P − Fᵢ) ≥ 0` and `n·a ≥ sin β` (the plane `n·x = n·P`): the same
+//! maximisation as above with these five constraints.
+//!
 //! Lights whose volume is not a cone narrower than a hemisphere (wide spots,
 //! point lights), suns and ambient light reach every ray: with any of them in
 //! the scene no tile is unlit.
@@ -77,6 +91,149 @@ pub struct Prism {
     pub recession: DVec3,
 }
 
+/// A floor no view ray passes (see the module documentation).
+#[derive(Debug, Clone)]
+pub struct Floor {
+    /// Unit normal towards the eye.
+    pub normal: DVec3,
+    /// `normal · x` on the plane, m.
+    pub offset: f64,
+    /// The polygon's edges: a point `x` of the plane is inside when
+    /// `m·x ≥ o` for every `(m, o)` (`m` unit, in the plane, inwards).
+    pub edges: Vec<(DVec3, f64)>,
+    /// The polygon's area, m².
+    pub area: f64,
+}
+
+impl Floor {
+    /// The floor made by the triangles `tris` of one plane (unit `normal`,
+    /// `normal · x = offset`) as seen from `eye`, if they qualify: the eye
+    /// strictly off the plane, the triangles' areas summing to their convex
+    /// hull's (no gap, no overlap) and every edge either shared by exactly
+    /// two triangles (same vertices) or on the hull's boundary.
+    pub fn new(tris: &[[DVec3; 3]], normal: DVec3, offset: f64, eye: DVec3) -> Option<Floor> {
+        let (mut normal, mut offset) = (normal, offset);
+        if normal.dot(eye) - offset < 0.0 {
+            (normal, offset) = (-normal, -offset);
+        }
+        let scale = 1.0 + eye.abs().max_element() + offset.abs();
+        if tris.is_empty() || normal.dot(eye) - offset <= 1e-9 * scale {
+            return None;
+        }
+        let (u, v) = normal.any_orthonormal_pair();
+        let flat = |p: DVec3| (p.dot(u), p.dot(v));
+        let cross = |o: (f64, f64), a: (f64, f64), b: (f64, f64)| (a.0 - o.0) * (b.1 - o.1) - (a.1 - o.1) * (b.0 - o.0);
+        // Convex hull (monotone chain), counter-clockwise.
+        let mut pts: Vec<(f64, f64)> = tris.iter().flatten().map(|p| flat(*p)).collect();
+        pts.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.total_cmp(&b.1)));
+        pts.dedup();
+        if pts.len() < 3 {
+            return None;
+        }
+        let mut hull: Vec<(f64, f64)> = Vec::new();
+        for pass in 0..2 {
+            let start = hull.len();
+            let iter: Box<dyn Iterator<Item = &(f64, f64)>> = if pass == 0 {
+                Box::new(pts.iter())
+            } else {
+                Box::new(pts.iter().rev())
+            };
+            for &p in iter {
+                while hull.len() >= start + 2 && cross(hull[hull.len() - 2], hull[hull.len() - 1], p) <= 0.0 {
+                    hull.pop();
+                }
+                hull.push(p);
+            }
+            hull.pop();
+        }
+        if hull.len() < 3 {
+            return None;
+        }
+        let hull_area = 0.5
+            * (0..hull.len())
+                .map(|i| cross((0.0, 0.0), hull[i], hull[(i + 1) % hull.len()]))
+                .sum::<f64>();
+        let tri_area: f64 = tris.iter().map(|t| 0.5 * cross(flat(t[0]), flat(t[1]), flat(t[2])).abs()).sum();
+        if !(hull_area > 0.0 && (tri_area - hull_area).abs() <= 1e-9 * hull_area) {
+            return None;
+        }
+        // Edges by their vertices' exact bits: inner ones twice, boundary ones once.
+        let key = |p: DVec3| p.to_array().map(f64::to_bits);
+        let mut edges: std::collections::HashMap<([u64; 3], [u64; 3]), u32> = std::collections::HashMap::new();
+        for t in tris {
+            for k in 0..3 {
+                let (a, b) = (key(t[k]), key(t[(k + 1) % 3]));
+                *edges.entry(if a < b { (a, b) } else { (b, a) }).or_insert(0) += 1;
+            }
+        }
+        let extent = hull.iter().fold(0.0f64, |m, p| m.max(p.0.abs()).max(p.1.abs()));
+        let on_boundary = |p: (f64, f64)| {
+            (0..hull.len()).any(|i| {
+                let (a, b) = (hull[i], hull[(i + 1) % hull.len()]);
+                let len = ((b.0 - a.0).powi(2) + (b.1 - a.1).powi(2)).sqrt();
+                cross(a, b, p).abs() <= 1e-12 * len * (1.0 + extent)
+            })
+        };
+        let from_bits = |k: [u64; 3]| DVec3::from_array(k.map(f64::from_bits));
+        for (&(a, b), &count) in &edges {
+            let ok = match count {
+                2 => true,
+                1 => {
+                    let (pa, pb) = (flat(from_bits(a)), flat(from_bits(b)));
+                    // Both ends on one hull edge's line.
+                    (0..hull.len()).any(|i| {
+                        let (h0, h1) = (hull[i], hull[(i + 1) % hull.len()]);
+                        let len = ((h1.0 - h0.0).powi(2) + (h1.1 - h0.1).powi(2)).sqrt();
+                        let tol = 1e-12 * len * (1.0 + extent);
+                        cross(h0, h1, pa).abs() <= tol && cross(h0, h1, pb).abs() <= tol
+                    }) && on_boundary(pa)
+                        && on_boundary(pb)
+                }
+                _ => false,
+            };
+            if !ok {
+                return None;
+            }
+        }
+        let edges = (0..hull.len())
+            .map(|i| {
+                let (a, b) = (hull[i], hull[(i + 1) % hull.len()]);
+                let m2 = (-(b.1 - a.1), b.0 - a.0);
+                let len = (m2.0 * m2.0 + m2.1 * m2.1).sqrt();
+                let m = (u * m2.0 + v * m2.1) / len;
+                let on_plane = u * a.0 + v * a.1 + normal * offset;
+                (m, m.dot(on_plane))
+            })
+            .collect();
+        Some(Floor {
+            normal,
+            offset,
+            edges,
+            area: hull_area,
+        })
+    }
+
+    /// Where the rays from `eye` along the unit `corners` cross the plane,
+    /// when all of them head into it and cross it inside the polygon by a
+    /// margin.
+    pub fn footprint(&self, eye: DVec3, corners: &[DVec3; 4]) -> Option<[DVec3; 4]> {
+        let height = self.normal.dot(eye) - self.offset;
+        let mut out = [DVec3::ZERO; 4];
+        for (c, f) in corners.iter().zip(&mut out) {
+            let down = -self.normal.dot(*c);
+            if down.is_nan() || down <= 1e-12 {
+                return None;
+            }
+            *f = eye + *c * (height / down);
+            let margin = 1e-9 * (1.0 + f.abs().max_element());
+            if !(f.is_finite() && self.edges.iter().all(|(m, o)| m.dot(*f) - o >= margin)) {
+                return None;
+            }
+        }
+        Some(out)
+    }
+}
+
 /// An illumination volume the test can separate from a tile.
 #[derive(Debug, Clone)]
 pub enum Volume {
@@ -91,6 +248,14 @@ impl Volume {
         match self {
             Volume::Cone(c) => pyramid_misses_cone(eye, corners, c),
             Volume::Prism(p) => pyramid_misses_prism(eye, corners, p),
+        }
+    }
+
+    /// Whether rays from `eye` that end on a floor within `footprint` miss it.
+    fn missed_above_floor(&self, eye: DVec3, footprint: &[DVec3; 4]) -> bool {
+        match self {
+            Volume::Cone(c) => floor_pyramid_misses_cone(eye, footprint, c),
+            Volume::Prism(_) => false,
         }
     }
 }
@@ -120,16 +285,37 @@ pub fn pyramid_misses_prism(eye: DVec3, corners: &[DVec3; 4], prism: &Prism) -> 
 /// directions `corners` (in order around the rectangle) from the cone
 /// (widened by the margins). `false` when it cannot be shown.
 pub fn pyramid_misses_cone(eye: DVec3, corners: &[DVec3; 4], cone: &Cone) -> bool {
-    let beta = cone.half_angle + ANGLE_MARGIN;
-    if !(beta > 0.0 && beta < std::f64::consts::FRAC_PI_2) {
-        return false;
-    }
     let to_apex = cone.apex - eye;
     let back = APEX_MARGIN * (to_apex.length() + 1.0);
     let q = to_apex - cone.axis * back;
     let Some(q) = q.try_normalize() else { return false };
     // Facet normals g: n ∈ 𝒫 iff g·n ≥ 0 for all of them.
-    let g = [-corners[0], -corners[1], -corners[2], -corners[3], q];
+    cone_separable(&[-corners[0], -corners[1], -corners[2], -corners[3], q], cone)
+}
+
+/// Whether a plane separates the cone (widened by the margins) from the
+/// convex hull of `eye` and the four points `footprint` (see Floors in the
+/// module documentation). `false` when it cannot be shown.
+pub fn floor_pyramid_misses_cone(eye: DVec3, footprint: &[DVec3; 4], cone: &Cone) -> bool {
+    let back = APEX_MARGIN * ((cone.apex - eye).length() + 1.0);
+    let apex = cone.apex - cone.axis * back;
+    let mut g = [DVec3::ZERO; 5];
+    for (gj, p) in g.iter_mut().zip(std::iter::once(&eye).chain(footprint)) {
+        match (apex - *p).try_normalize() {
+            Some(d) => *gj = d,
+            None => return false,
+        }
+    }
+    cone_separable(&g, cone)
+}
+
+/// Whether some unit `n` with `g·n ≥ 0` for every `g` has `n·a ≥ sin β`
+/// (the cone's half-angle β widened by [`ANGLE_MARGIN`]).
+fn cone_separable(g: &[DVec3; 5], cone: &Cone) -> bool {
+    let beta = cone.half_angle + ANGLE_MARGIN;
+    if !(beta > 0.0 && beta < std::f64::consts::FRAC_PI_2) {
+        return false;
+    }
     let a = cone.axis;
     let inside = |n: DVec3| g.iter().all(|gj| gj.dot(n) >= -1e-12);
     let mut best = f64::NEG_INFINITY;
@@ -141,7 +327,7 @@ pub fn pyramid_misses_cone(eye: DVec3, corners: &[DVec3; 4], cone: &Cone) -> boo
         }
     };
     consider(a);
-    for gj in &g {
+    for gj in g {
         consider(a - *gj * (a.dot(*gj) / gj.length_squared()));
     }
     for j in 0..g.len() {
@@ -158,7 +344,7 @@ pub fn pyramid_misses_cone(eye: DVec3, corners: &[DVec3; 4], cone: &Cone) -> boo
 /// `-pad ..< height + pad`, in tiles of [`TILE`] from the top-left), whether
 /// its rays, with every pixel's `reach` (px) around it, miss every volume.
 /// Returns the tile grid's columns and the flags, row by row.
-pub fn unlit_tiles(cam: &CameraRays, volumes: &[Volume], pad: usize, reach: f64) -> (usize, Vec<bool>) {
+pub fn unlit_tiles(cam: &CameraRays, volumes: &[Volume], floors: &[Floor], pad: usize, reach: f64) -> (usize, Vec<bool>) {
     let (pw, ph) = (cam.width + 2 * pad, cam.height + 2 * pad);
     let (cols, rows) = (pw.div_ceil(TILE), ph.div_ceil(TILE));
     let margin = reach + 1.0;
@@ -175,7 +361,13 @@ pub fn unlit_tiles(cam: &CameraRays, volumes: &[Volume], pad: usize, reach: f64)
             cam.direction(xb, yb),
             cam.direction(xa, yb),
         ];
-        volumes.iter().all(|v| v.missed_by(cam.position, &corners))
+        let mut footprints: Option<Vec<[DVec3; 4]>> = None;
+        volumes.iter().all(|v| {
+            v.missed_by(cam.position, &corners) || {
+                let fp = footprints.get_or_insert_with(|| floors.iter().filter_map(|f| f.footprint(cam.position, &corners)).collect());
+                fp.iter().any(|f| v.missed_above_floor(cam.position, f))
+            }
+        })
     };
     // Blocks of BLOCK × BLOCK tiles first: a plane that separates a block's
     // pyramid separates each of its tiles' (a sub-pyramid), so a missed
@@ -340,6 +532,110 @@ mod tests {
             }
         }
         assert!(proven > tried / 5, "only {proven} of {tried} proven");
+    }
+
+    /// A 20 m square floor at z = 0 as two triangles.
+    fn floor_quad() -> Vec<[DVec3; 3]> {
+        let p = [(-10.0, -10.0), (10.0, -10.0), (10.0, 10.0), (-10.0, 10.0)].map(|(x, y)| DVec3::new(x, y, 0.0));
+        vec![[p[0], p[1], p[2]], [p[0], p[2], p[3]]]
+    }
+
+    #[test]
+    fn floors_are_convex_watertight_polygons_below_the_eye() {
+        let eye = DVec3::new(0.0, -9.0, 2.0);
+        let quad = floor_quad();
+        let f = Floor::new(&quad, DVec3::Z, 0.0, eye).expect("a square of two triangles");
+        assert!((f.area - 400.0).abs() < 1e-9 && f.edges.len() == 4);
+        // Given with the normal pointing down: turned towards the eye.
+        assert!(Floor::new(&quad, -DVec3::Z, 0.0, eye).is_some_and(|f| f.normal == DVec3::Z));
+        // The eye on the plane; one triangle of the two (not the hull's area:
+        // fine, it is convex) and an L of three (concave: refused); a square
+        // split at a T-junction (an inner edge without its twin: refused).
+        assert!(Floor::new(&quad, DVec3::Z, 0.0, DVec3::new(0.0, 0.0, 0.0)).is_none());
+        assert!(Floor::new(&quad[..1], DVec3::Z, 0.0, eye).is_some());
+        let q = |x: f64, y: f64| DVec3::new(x, y, 0.0);
+        let trapezoid = vec![
+            [q(0.0, 0.0), q(1.0, 0.0), q(1.0, 1.0)],
+            [q(0.0, 0.0), q(1.0, 1.0), q(0.0, 1.0)],
+            [q(1.0, 0.0), q(2.0, 0.0), q(1.0, 1.0)],
+        ];
+        assert!(
+            Floor::new(&trapezoid, DVec3::Z, 0.0, eye).is_some(),
+            "a square and a triangle: convex"
+        );
+        let notch = vec![
+            [q(0.0, 0.0), q(1.0, 0.0), q(1.0, 1.0)],
+            [q(0.0, 0.0), q(1.0, 1.0), q(0.0, 1.0)],
+            [q(1.0, 0.0), q(2.0, 0.0), q(2.0, 1.0)],
+        ];
+        assert!(
+            Floor::new(&notch, DVec3::Z, 0.0, eye).is_none(),
+            "three triangles of a 2 × 1 rectangle: a gap"
+        );
+        let t_junction = vec![
+            [q(0.0, 0.0), q(2.0, 0.0), q(2.0, 2.0)],
+            [q(0.0, 0.0), q(1.0, 1.0), q(0.0, 2.0)],
+            [q(1.0, 1.0), q(2.0, 2.0), q(0.0, 2.0)],
+        ];
+        assert!(
+            Floor::new(&t_junction, DVec3::Z, 0.0, eye).is_none(),
+            "the diagonal split at its midpoint"
+        );
+        // Overlapping triangles: areas sum past the hull's.
+        let overlap = vec![quad[0], quad[1], quad[0]];
+        assert!(Floor::new(&overlap, DVec3::Z, 0.0, eye).is_none());
+        // Footprints: straight down inside; towards the sky or past the edge: none.
+        let down = [(-0.1, -0.1), (0.1, -0.1), (0.1, 0.1), (-0.1, 0.1)].map(|(a, b)| DVec3::new(a, 1.0 + b, -1.0).normalize());
+        assert!(f.footprint(eye, &down).is_some());
+        let up = down.map(|d| DVec3::new(d.x, d.y, -d.z));
+        assert!(f.footprint(eye, &up).is_none());
+        let far = down.map(|d| DVec3::new(d.x, d.y, d.z * 0.1).normalize());
+        assert!(f.footprint(eye, &far).is_none(), "crosses the plane beyond the square");
+    }
+
+    #[test]
+    fn a_proven_miss_above_a_floor_is_a_miss() {
+        // Random cones reaching through a square floor and random small
+        // pyramids looking down at it: whenever the floor test says "misses",
+        // no ray of a dense fan has a point in the cone before it reaches
+        // the floor; and many tiles the cone's part beneath the floor would
+        // light are proven.
+        let floor = Floor::new(&floor_quad(), DVec3::Z, 0.0, DVec3::new(0.0, -9.0, 2.0)).expect("floor");
+        let mut state = 0x1234_5678_9abc_def1u64;
+        let mut rnd = || uniform(&mut state);
+        let (mut proven, mut only_by_floor, mut tried) = (0, 0, 0);
+        for _ in 0..600 {
+            let eye = DVec3::new(8.0 * rnd() - 4.0, 8.0 * rnd() - 4.0, 0.5 + 4.0 * rnd());
+            let look = DVec3::new(10.0 * rnd() - 5.0, 10.0 * rnd() - 5.0, 0.0) - eye;
+            let corners = square_pyramid(look.normalize(), 0.01 + 0.1 * rnd());
+            let apex = DVec3::new(8.0 * rnd() - 4.0, 8.0 * rnd() - 4.0, 2.0 + 5.0 * rnd());
+            let target = DVec3::new(8.0 * rnd() - 4.0, 8.0 * rnd() - 4.0, 0.0);
+            let cone = Cone {
+                apex,
+                axis: (target - apex).normalize(),
+                half_angle: (0.5 + 20.0 * rnd()).to_radians(),
+            };
+            let Some(fp) = floor.footprint(eye, &corners) else { continue };
+            tried += 1;
+            if floor_pyramid_misses_cone(eye, &fp, &cone) {
+                proven += 1;
+                only_by_floor += usize::from(!pyramid_misses_cone(eye, &corners, &cone));
+                for d in fan(&corners) {
+                    let t_floor = eye.z / -d.z;
+                    for k in 0..=400 {
+                        let p = eye + d * (t_floor * f64::from(k) / 400.0);
+                        let w = p - cone.apex;
+                        let len = w.length();
+                        assert!(
+                            len > 0.0 && w.dot(cone.axis) < len * cone.half_angle.cos(),
+                            "{cone:?} {corners:?} at {p}"
+                        );
+                    }
+                }
+            }
+        }
+        assert!(tried > 300 && proven > tried / 4, "{proven} of {tried} proven");
+        assert!(only_by_floor > 20, "only {only_by_floor} proven by the floor alone");
     }
 
     #[test]
