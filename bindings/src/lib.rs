@@ -135,8 +135,12 @@ fn with_overrides(scene: &Scene, tolerance: Option<f64>, threads: Option<usize>,
     Ok(s)
 }
 
-fn rgb_array<'py>(py: Python<'py>, px: &[[f32; 3]], w: usize, h: usize) -> PyResult<Bound<'py, PyAny>> {
-    let flat: Vec<f32> = px.iter().flat_map(|p| p.iter().copied()).collect();
+/// An H×W×3 array that takes over the layer's buffer (no copy: a
+/// `Vec<[f32; 3]>` is a `Vec<f32>` three times as long, `bytemuck` checks
+/// the layout).
+fn rgb_array<'py>(py: Python<'py>, px: Vec<[f32; 3]>, w: usize, h: usize) -> PyResult<Bound<'py, PyAny>> {
+    let flat: Vec<f32> =
+        bytemuck::allocation::try_cast_vec(px).unwrap_or_else(|(_, px)| px.iter().flat_map(|p| p.iter().copied()).collect());
     Ok(PyArray1::from_vec(py, flat).reshape([h, w, 3])?.into_any())
 }
 
@@ -154,25 +158,38 @@ fn render<'py>(
     layers: Option<Vec<String>>,
 ) -> PyResult<(Bound<'py, PyDict>, String)> {
     let s = with_overrides(&scene.inner, tolerance, threads, layers)?;
-    let (images, mut report) = py.detach(|| tyndall_core::render(&s, None)).map_err(|e| render_err(py, e))?;
+    let (mut images, mut report) = py.detach(|| tyndall_core::render(&s, None)).map_err(|e| render_err(py, e))?;
     report.resolution = [images.width, images.height];
     let (w, h) = (images.width, images.height);
     let out = PyDict::new(py);
-    for k in &images.layers {
+    let layers = std::mem::take(&mut images.layers);
+    let mut done: Vec<&LayerKind> = Vec::new();
+    for k in &layers {
+        // Each buffer is handed over once (a layer named twice is one key).
+        if done.contains(&k) {
+            continue;
+        }
+        done.push(k);
         let arr = match k {
-            LayerKind::Inscatter => rgb_array(py, &images.inscatter, w, h)?,
-            LayerKind::Transmittance => rgb_array(py, &images.transmittance, w, h)?,
-            LayerKind::SunTransmittance => rgb_array(py, &images.sun_transmittance, w, h)?,
-            LayerKind::Error => rgb_array(py, &images.error, w, h)?,
-            LayerKind::Depth => PyArray1::from_vec(py, images.depth.clone()).reshape([h, w])?.into_any(),
+            LayerKind::Inscatter => rgb_array(py, std::mem::take(&mut images.inscatter), w, h)?,
+            LayerKind::Transmittance => rgb_array(py, std::mem::take(&mut images.transmittance), w, h)?,
+            LayerKind::SunTransmittance => rgb_array(py, std::mem::take(&mut images.sun_transmittance), w, h)?,
+            LayerKind::Error => rgb_array(py, std::mem::take(&mut images.error), w, h)?,
+            LayerKind::Depth => PyArray1::from_vec(py, std::mem::take(&mut images.depth))
+                .reshape([h, w])?
+                .into_any(),
             LayerKind::InscatterPerLight => {
-                for (name, px) in images.light_layer_names.iter().zip(&images.light_inscatter) {
+                for (name, px) in images.light_layer_names.iter().zip(std::mem::take(&mut images.light_inscatter)) {
                     out.set_item(name, rgb_array(py, px, w, h)?)?;
                 }
                 continue;
             }
             LayerKind::SurfaceTransmittancePerLight => {
-                for (name, px) in images.surface_layer_names.iter().zip(&images.light_surface_transmittance) {
+                for (name, px) in images
+                    .surface_layer_names
+                    .iter()
+                    .zip(std::mem::take(&mut images.light_surface_transmittance))
+                {
                     out.set_item(name, rgb_array(py, px, w, h)?)?;
                 }
                 continue;
@@ -276,7 +293,8 @@ fn sky<'py>(
         });
         written.map_err(RenderFailed::new_err)?;
     }
-    let arr = rgb_array(py, &tex.rgb, tex.width, tex.height)?;
+    let (tw, th) = (tex.width, tex.height);
+    let arr = rgb_array(py, tex.rgb, tw, th)?;
     Ok((arr, serde_json_report(&report)))
 }
 
