@@ -13,7 +13,7 @@ counts are lower than the stored ones (the render time grows with the pixel
 count); the reference noise is printed beside the results and enters both
 renderers' errors alike.
 
-For every scale: Tyndall's tolerance sweep (best of 3 wall times of
+For every scale: Tyndall's tolerance sweep (best of ``--runs``, default 3, wall times of
 ``tyndall.render``) and Cycles' sample sweep (render time from its own log,
 CPU, 2 threads), errors against the reference over all pixels and without
 the pixels whose filter window (±1.5 px) holds a point light's image: there
@@ -108,6 +108,7 @@ def main() -> None:
     )
     ap.add_argument("--ref-dir", default=str(ROOT / ".cache" / "cycles_refs"))
     ap.add_argument("--json", default="")
+    ap.add_argument("--runs", type=int, default=3, help="Tyndall: best wall time of this many renders per point")
     args = ap.parse_args()
     ref_dir = Path(args.ref_dir)
     ref_dir.mkdir(parents=True, exist_ok=True)
@@ -127,7 +128,7 @@ def main() -> None:
             keep = None
             tyndall_pts, cycles_pts = [], []
             for tol in [float(t) for t in args.tolerances.split(",")]:
-                best, layers, report = render_tyndall(scene, tol)
+                best, layers, report = render_tyndall(scene, tol, args.runs)
                 if keep is None:
                     radius = scene.get("output", {}).get("pixel_filter", {}).get("width_px", 1.5)
                     keep = light_window_mask(report["stats"].get("light_images", []), *ref.shape[:2], radius)
