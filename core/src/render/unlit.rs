@@ -167,13 +167,6 @@ impl Floor {
             }
         }
         let extent = hull.iter().fold(0.0f64, |m, p| m.max(p.0.abs()).max(p.1.abs()));
-        let on_boundary = |p: (f64, f64)| {
-            (0..hull.len()).any(|i| {
-                let (a, b) = (hull[i], hull[(i + 1) % hull.len()]);
-                let len = ((b.0 - a.0).powi(2) + (b.1 - a.1).powi(2)).sqrt();
-                cross(a, b, p).abs() <= 1e-12 * len * (1.0 + extent)
-            })
-        };
         let from_bits = |k: [u64; 3]| DVec3::from_array(k.map(f64::from_bits));
         for (&(a, b), &count) in &edges {
             let ok = match count {
@@ -186,8 +179,7 @@ impl Floor {
                         let len = ((h1.0 - h0.0).powi(2) + (h1.1 - h0.1).powi(2)).sqrt();
                         let tol = 1e-12 * len * (1.0 + extent);
                         cross(h0, h1, pa).abs() <= tol && cross(h0, h1, pb).abs() <= tol
-                    }) && on_boundary(pa)
-                        && on_boundary(pb)
+                    })
                 }
                 _ => false,
             };
