@@ -2377,7 +2377,7 @@ fn render_channels<const C: usize, const K: usize>(
         report.plan.left_out(
             format!("view rays of {} pixels", stats.unlit),
             format!(
-                "unlit: in tiles of {0}×{0} px whose rays, padded by every pixel their results read, miss every light's illumination volume (a separating plane through the eye, per light: spot cones, window prisms); their in-scatter is exactly 0 and no requested layer needs the ray",
+                "unlit: in tiles of {0}×{0} px whose rays, padded by every pixel their results read, miss every light's illumination volume (a separating plane through the eye, per light: spot cones, window prisms; or, where all their rays end on a floor, a plane separating their segments from the cone); their in-scatter is exactly 0 and no requested layer needs the ray",
                 unlit::TILE
             ),
         );
