@@ -139,10 +139,20 @@ impl PixelFilter {
         raw.into_iter().map(|(x, w)| (x, w / sum)).collect()
     }
 
-    /// Per-axis variance of the normalised window, px².
+    /// Per-axis variance of the normalised window, px², in closed form: on
+    /// `[−W/2, W/2]`, `W = 2·width_px`, `∫x²·cos(2πkx/W ± πk) dx` over the
+    /// period gives `σ² = W²·(1/12 − (a₁ − a₂/4 + a₃/9)/(2π²·a₀))` for the
+    /// coefficients `a = (0.35875, 0.48829, 0.14128, 0.01168)`. (A 4 096-node
+    /// midpoint sum took ≈ 0.2 ms of every render: 13 % of an 8 × 4 px one.)
     pub fn variance(&self) -> f64 {
-        let nodes = self.nodes(4096);
-        nodes.iter().map(|(x, w)| x * x * w).sum()
+        match *self {
+            PixelFilter::BlackmanHarris { width_px } => {
+                let (a0, a1, a2, a3) = (0.35875, 0.48829, 0.14128, 0.01168);
+                let w = 2.0 * width_px;
+                w * w * (1.0 / 12.0 - (a1 - a2 / 4.0 + a3 / 9.0) / (2.0 * PI * PI * a0))
+            }
+            PixelFilter::None => 0.0,
+        }
     }
 }
 
@@ -945,13 +955,14 @@ mod tests {
         assert_eq!(f.weight(1.51), 0.0);
         let s: f64 = f.nodes(16).iter().map(|p| p.1).sum();
         assert!((s - 1.0).abs() < 1e-12);
-        // Variance of the 4-term Blackman–Harris window on [−W/2, W/2], W = 2·1.5 px: computed
-        // in closed form, σ² = w²·(1/12 − (1/(2π²))·(a1 − a2/4 + a3/9)/a0) with
-        // a = (0.35875, 0.48829, 0.14128, 0.01168).
-        let (a0, a1, a2, a3) = (0.35875, 0.48829, 0.14128, 0.01168);
-        let w: f64 = 3.0;
-        let exact = w * w * (1.0 / 12.0 - (a1 - a2 / 4.0 + a3 / 9.0) / (2.0 * PI * PI * a0));
-        assert!((f.variance() - exact).abs() < 1e-6 * exact, "{} vs {exact}", f.variance());
+        // The closed-form variance against an independent 200 000-node
+        // midpoint sum of x²·w over the window, for three widths.
+        for width_px in [1.5, 1.2, 2.0] {
+            let f = PixelFilter::BlackmanHarris { width_px };
+            let sum: f64 = f.nodes(200_000).iter().map(|(x, w)| x * x * w).sum();
+            assert!((f.variance() - sum).abs() < 1e-9 * sum, "{width_px}: {} vs {sum}", f.variance());
+        }
+        assert_eq!(PixelFilter::None.variance(), 0.0);
     }
 }
 
