@@ -20,7 +20,15 @@ class TyndallSettings(bpy.types.PropertyGroup):
         default="//tyndall/",
     )
     tolerance: FloatProperty(  # type: ignore[valid-type]
-        name="Tolerance", description="Relative error tolerance", default=1e-4, min=1e-12, max=0.5, precision=6
+        name="Tolerance",
+        description=(
+            "Relative error tolerance. The pixel filter at beam and shadow edges sets the run time below 1e-3 "
+            "(a 640x360 stage: 8 s at 1e-3, 46 s at 1e-4 on 2 cores); 1e-2 for quick previews"
+        ),
+        default=1e-4,
+        min=1e-12,
+        max=0.5,
+        precision=6,
     )
     threads: IntProperty(name="Threads", description="Worker threads (0 = all cores)", default=0, min=0, max=4096)  # type: ignore[valid-type]
     resolution_scale: FloatProperty(  # type: ignore[valid-type]
