@@ -960,8 +960,9 @@ mod tests {
         let s: f64 = f.nodes(16).iter().map(|p| p.1).sum();
         assert!((s - 1.0).abs() < 1e-12);
         // The closed-form variance against an independent 200 000-node
-        // midpoint sum of x²·w over the window, for three widths.
-        for width_px in [1.5, 1.2, 2.0] {
+        // midpoint sum of x²·w over the window, for widths across the
+        // allowed range (0.01 ..= 10 px).
+        for width_px in [0.01, 1.2, 1.5, 2.0, 10.0] {
             let f = PixelFilter::BlackmanHarris { width_px };
             let sum: f64 = f.nodes(200_000).iter().map(|(x, w)| x * x * w).sum();
             assert!((f.variance() - sum).abs() < 1e-9 * sum, "{width_px}: {} vs {sum}", f.variance());
