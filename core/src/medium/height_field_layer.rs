@@ -23,8 +23,12 @@
 //!
 //! Both tests are rigorous bounds (up to rounding of `f`), so no crossing is
 //! missed except pairs closer than ~1e-13 relative (a ray touching a crest;
-//! the misclassified length is below that width). The sign of `f` at the
-//! middle of each piece between roots labels it below (`f < 0`) or above.
+//! the misclassified length is below that width). Each piece between roots
+//! is labelled below (`f < 0`) or above by the signs of `f` the search
+//! already has at its two ends (the ends of the intervals holding the roots
+//! that bound it); only where those disagree (rounding beside a near-double
+//! root) is `f` evaluated at its middle. The Newton iteration starts from the
+//! midpoint value the monotonicity test computed.
 //!
 //! **Optical depth** of any segment: `Σ_pieces σ_t,piece × length` — exact
 //! given the crossings. Infinite rays inside the slab (exactly horizontal) are
@@ -54,6 +58,7 @@ use super::phase::PhaseFunction;
 use super::{LightSet, RayResult, ViewRay, rounding_bound};
 use crate::numeric::{EPS, integral_exp_neg, integrate_adaptive};
 use glam::DVec3;
+use smallvec::{SmallVec, smallvec};
 use std::cell::RefCell;
 use std::sync::atomic::{AtomicU64, Ordering};
 
@@ -107,6 +112,20 @@ pub struct Piece {
     pub below: bool,
 }
 
+/// The pieces of a ray: a few for a light or sun ray, kept off the heap
+/// (the search runs for every quadrature node of the light's in-scatter).
+pub type Pieces = SmallVec<[Piece; 8]>;
+
+/// A crossing found by [`Search::isolate`].
+#[derive(Debug, Clone, Copy)]
+struct Root {
+    t: f64,
+    /// `f < 0` at the start of the interval that held it.
+    below_before: bool,
+    /// `f < 0` at its end.
+    below_after: bool,
+}
+
 /// Evaluations of `f` after which a search stops (the rest keeps its side).
 const MAX_EVALS: usize = 1_000_000;
 /// Optical depth beyond which the transmittance is 0 in f64.
@@ -116,7 +135,7 @@ static NEXT_ID: AtomicU64 = AtomicU64::new(1);
 
 struct CacheEntry {
     key: [u64; 8],
-    pieces: Vec<Piece>,
+    pieces: Pieces,
 }
 
 thread_local! {
@@ -167,12 +186,18 @@ impl<const C: usize> Search<'_, C> {
         (z - h, d.z - dh)
     }
 
-    /// Root of `f` in `[a, b]` where `f` is monotone and changes sign.
-    fn refine(&mut self, a: f64, b: f64, fa: f64) -> f64 {
+    /// Root of `f` in `[a, b]` where `f` is monotone and changes sign;
+    /// `mid` is `(f, f')` at the midpoint, where the iteration starts.
+    /// Newton's error after a step `s` is at most `|f''|/(2|f'|)·s²` (up to
+    /// the `O(s)` difference between `s` and the error before it): once that,
+    /// with `|f''| ≤ m_bound` and a factor 4 of slack, is below `ε|t|`, the
+    /// step's end is returned without evaluating `f` there once more.
+    fn refine(&mut self, a: f64, b: f64, fa: f64, mid: (f64, f64), m_bound: f64) -> f64 {
         let (mut lo, mut hi) = if fa < 0.0 { (a, b) } else { (b, a) };
         let mut t = 0.5 * (a + b);
+        let mut known = Some(mid);
         for _ in 0..200 {
-            let (f, df) = self.f_df(t);
+            let (f, df) = known.take().unwrap_or_else(|| self.f_df(t));
             if f == 0.0 {
                 return t;
             }
@@ -183,11 +208,14 @@ impl<const C: usize> Search<'_, C> {
             }
             let (l, h) = (lo.min(hi), lo.max(hi));
             let newton = t - f / df;
-            let next = if df != 0.0 && newton > l && newton < h {
-                newton
-            } else {
-                0.5 * (l + h)
-            };
+            let is_newton = df != 0.0 && newton > l && newton < h;
+            let next = if is_newton { newton } else { 0.5 * (l + h) };
+            if is_newton {
+                let step = newton - t;
+                if 2.0 * m_bound / df.abs() * step * step <= EPS * newton.abs() {
+                    return newton;
+                }
+            }
             let width = h - l;
             if (next - t).abs() <= 2.0 * EPS * t.abs() || width <= 2.0 * EPS * (l.abs() + h.abs()) || next == l || next == h {
                 return next;
@@ -197,15 +225,21 @@ impl<const C: usize> Search<'_, C> {
         t
     }
 
-    /// Roots of `f` in `(a, b)`, appended in increasing order.
-    fn isolate(&mut self, a: f64, b: f64, fa: f64, fb: f64, m_bound: f64, roots: &mut Vec<f64>) {
-        let mut stack = vec![(a, b, fa, fb)];
+    /// Roots of `f` in `(a, b)`, appended in increasing order, each with the
+    /// sides just before and after it (`f < 0` at the ends of the interval
+    /// that held it).
+    fn isolate(&mut self, a: f64, b: f64, fa: f64, fb: f64, m_bound: f64, roots: &mut SmallVec<[Root; 8]>) {
+        let mut stack: SmallVec<[(f64, f64, f64, f64); 32]> = smallvec![(a, b, fa, fb)];
         while let Some((a, b, fa, fb)) = stack.pop() {
             let change = (fa < 0.0) != (fb < 0.0);
             let tiny = 1e-13 * (1.0 + a.abs() + b.abs());
             if b - a <= tiny {
                 if change {
-                    roots.push(0.5 * (a + b));
+                    roots.push(Root {
+                        t: 0.5 * (a + b),
+                        below_before: fa < 0.0,
+                        below_after: fb < 0.0,
+                    });
                 }
                 continue;
             }
@@ -214,7 +248,12 @@ impl<const C: usize> Search<'_, C> {
             let (fm, dfm) = self.f_df(m);
             if dfm.abs() > m_bound * r {
                 if change {
-                    roots.push(self.refine(a, b, fa));
+                    let t = self.refine(a, b, fa, (fm, dfm), m_bound);
+                    roots.push(Root {
+                        t,
+                        below_before: fa < 0.0,
+                        below_after: fb < 0.0,
+                    });
                 }
                 continue;
             }
@@ -284,12 +323,12 @@ impl<const C: usize> HeightFieldLayer<C> {
 
     /// The pieces of `o + t·d`, `t ∈ [a, b]` (`b` may be ∞), on each side of
     /// the boundary, adjacent pieces on the same side merged.
-    pub fn pieces(&self, o: DVec3, d: DVec3, a: f64, b: f64) -> Vec<Piece> {
-        let mut out: Vec<Piece> = Vec::new();
+    pub fn pieces(&self, o: DVec3, d: DVec3, a: f64, b: f64) -> Pieces {
+        let mut out = Pieces::new();
         if b.partial_cmp(&a) != Some(std::cmp::Ordering::Greater) {
             return out;
         }
-        let push = |out: &mut Vec<Piece>, t0: f64, t1: f64, below: bool| {
+        let push = |out: &mut Pieces, t0: f64, t1: f64, below: bool| {
             if t1.partial_cmp(&t0) != Some(std::cmp::Ordering::Greater) {
                 return;
             }
@@ -324,7 +363,7 @@ impl<const C: usize> HeightFieldLayer<C> {
         out
     }
 
-    fn slab_pieces(&self, o: DVec3, d: DVec3, p: f64, q: f64, out: &mut Vec<Piece>, push: impl Fn(&mut Vec<Piece>, f64, f64, bool)) {
+    fn slab_pieces(&self, o: DVec3, d: DVec3, p: f64, q: f64, out: &mut Pieces, push: impl Fn(&mut Pieces, f64, f64, bool)) {
         let mut s = Search {
             layer: self,
             o,
@@ -347,7 +386,7 @@ impl<const C: usize> HeightFieldLayer<C> {
             if piece.below { below_len += l } else { above_len += l }
         }
         let mut t = p;
-        let mut roots = Vec::new();
+        let mut roots: SmallVec<[Root; 8]> = SmallVec::new();
         let mut last_below = None;
         while t < q {
             let e = if q - t > chunk { t + chunk } else { q };
@@ -362,12 +401,19 @@ impl<const C: usize> HeightFieldLayer<C> {
             let (fe, _) = s.f_df(e);
             roots.clear();
             s.isolate(t, e, ft, fe, m_bound, &mut roots);
+            // A piece's side: the sign of `f` at its two ends as the search
+            // saw them (just after the root that opens it, just before the
+            // one that closes it) when they agree, else at its middle. They
+            // can disagree beside a near-double root, where rounding of `f`
+            // flips signs that the Taylor test then steps over (a ray tangent
+            // to the surface: a 1e-8 m pair).
             let mut start = t;
             for k in 0..=roots.len() {
-                let end = if k < roots.len() { roots[k] } else { e };
+                let end = if k < roots.len() { roots[k].t } else { e };
                 if end > start {
-                    let (fm, _) = s.f_df(0.5 * (start + end));
-                    let below = fm < 0.0;
+                    let left = if k == 0 { ft < 0.0 } else { roots[k - 1].below_after };
+                    let right = if k < roots.len() { roots[k].below_before } else { fe < 0.0 };
+                    let below = if left == right { left } else { s.f_df(0.5 * (start + end)).0 < 0.0 };
                     push(out, start, end, below);
                     if below {
                         below_len += end - start
