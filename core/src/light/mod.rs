@@ -197,6 +197,31 @@ impl Table {
 }
 
 /// Nishita eq 8: `k(x) = max(p + (1 − p)·|2 mod(x, Δ) − Δ|/Δ, 0)`.
+/// The angles in `[0, span]` where Nishita's `k(x)` (eq 8, period `period`,
+/// minimum ratio `p`) or eq 10's parity is not smooth: the period boundaries
+/// (peaks of `k`, parity jumps), the troughs, and for `p < 0` where the
+/// clamp at 0 starts and ends, `period/2 ± period/2 · (−p)/(1 − p)`.
+fn pattern_kinks(period: f64, p: f64, span: f64) -> Vec<f64> {
+    let half = 0.5 * period;
+    let mut offsets = vec![0.0, half];
+    if p < 0.0 {
+        let z = half * (-p) / (1.0 - p);
+        offsets.extend([half - z, half + z]);
+    }
+    let periods = (span / period).ceil() as usize;
+    let mut out = Vec::with_capacity(periods * offsets.len() + 1);
+    for n in 0..periods {
+        for o in &offsets {
+            let x = n as f64 * period + o;
+            if x <= span {
+                out.push(x);
+            }
+        }
+    }
+    out.push(span);
+    out
+}
+
 #[inline]
 fn nishita_k(x: f64, period: f64, p: f64) -> f64 {
     let m = x.rem_euclid(period);
@@ -621,6 +646,23 @@ impl<const C: usize> PointSource<C> {
                 cell_phi.extend(t.phi.iter().copied());
             }
         }
+        if let Shape::Nishita {
+            period_phi,
+            period_theta,
+            p,
+            ..
+        } = &shape
+        {
+            // Eq 8's k is a triangle wave clamped at 0, and eq 10's parity
+            // jumps at the period boundaries: both are smooth between the
+            // angles of `pattern_kinks` (φ restarts at 0, taken mod 2π).
+            if *period_phi > 0.0 {
+                cell_phi.extend(pattern_kinks(*period_phi, *p, 2.0 * PI));
+            }
+            if *period_theta > 0.0 {
+                cell_theta.extend(pattern_kinks(*period_theta, *p, PI));
+            }
+        }
         if let Some((p, _)) = &ies {
             let (v, h) = p.cell_angles();
             cell_theta.extend(v);
@@ -635,14 +677,19 @@ impl<const C: usize> PointSource<C> {
             .collect();
         cell_cones.sort_by(f64::total_cmp);
         cell_cones.dedup_by(|a, b| (*a - *b).abs() < 1e-12);
-        let mut cell_planes: Vec<DVec3> = Vec::new();
-        for phi in cell_phi {
-            let dir = frame.x * phi.cos() + frame.y * phi.sin();
-            let n = frame.axis.cross(dir).normalize_or_zero();
-            if n != DVec3::ZERO && !cell_planes.iter().any(|m| m.cross(n).length() < 1e-9) {
-                cell_planes.push(n);
-            }
+        // One plane per azimuth mod π (sorted, so that thousands of pattern
+        // azimuths dedup in O(n log n)).
+        let mut half_turns: Vec<f64> = cell_phi.iter().map(|phi| phi.rem_euclid(PI)).collect();
+        half_turns.sort_by(f64::total_cmp);
+        half_turns.dedup_by(|a, b| (*a - *b).abs() < 1e-9);
+        if half_turns.len() > 1 && half_turns[half_turns.len() - 1] > PI - 1e-9 && half_turns[0] < 1e-9 {
+            half_turns.pop();
         }
+        let cell_planes: Vec<DVec3> = half_turns
+            .iter()
+            .map(|phi| frame.axis.cross(frame.x * phi.cos() + frame.y * phi.sin()).normalize_or_zero())
+            .filter(|n| *n != DVec3::ZERO)
+            .collect();
         PointSource {
             name: name.to_string(),
             position,
