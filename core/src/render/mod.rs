@@ -292,14 +292,17 @@ fn medium_label(i: usize, m: &Medium) -> String {
     }
 }
 
-fn light_label(i: usize, l: &Light) -> String {
-    let name = match l {
+fn light_name(l: &Light) -> &str {
+    match l {
         Light::Sun(SunLight { name, .. }) | Light::Ambient(AmbientLight { name, .. }) => name,
         Light::Point(l) => &l.name,
         Light::Spot(l) => &l.name,
         Light::Window(l) => &l.name,
-    };
-    format!("lights[{i}] \"{name}\"")
+    }
+}
+
+fn light_label(i: usize, l: &Light) -> String {
+    format!("lights[{i}] \"{}\"", light_name(l))
 }
 
 /// Coefficient resolved to `C` channels (RGB or spectral).
@@ -433,9 +436,11 @@ fn prepare_stage_lights<const C: usize>(scene: &Scene, report: &mut Report) -> R
                     _ => unreachable!("matched above"),
                 };
                 if power_w == 0.0 || color.iter().all(|c| *c == 0.0) || ies_ref.as_ref().is_some_and(|r| r.strength == 0.0) {
-                    report
-                        .plan
-                        .left_out(label, "no contribution: zero power, black colour or zero IES strength");
+                    report.plan.left_out(
+                        label,
+                        "no contribution: zero power, black colour or zero IES strength (its inscatter.<light> layer is 0)",
+                    );
+                    out.dark.push(light_name(l).to_string());
                     continue;
                 }
                 let ies = load_ies(i, ies_ref)?;
@@ -449,7 +454,11 @@ fn prepare_stage_lights<const C: usize>(scene: &Scene, report: &mut Report) -> R
             }
             Light::Window(wl) => {
                 if wl.irradiance_w_m2 == 0.0 || wl.color.iter().all(|c| *c == 0.0) {
-                    report.plan.left_out(label, "no contribution: zero irradiance or black colour");
+                    report.plan.left_out(
+                        label,
+                        "no contribution: zero irradiance or black colour (its inscatter.<light> layer is 0)",
+                    );
+                    out.dark.push(wl.name.clone());
                     continue;
                 }
                 let src = crate::light::window::WindowSource::new(
@@ -2447,16 +2456,35 @@ fn render_channels<const C: usize, const K: usize>(
             format!("surface_transmittance.<light> for {n_stage} stage lights"),
             "per pixel with a surface: view transmittance × the medium's transmittance from the surface point to the light (window lights: to the window plane); filtered pixels average over their surface samples",
         );
-    } else if scene.output.layers.contains(&LayerKind::SurfaceTransmittancePerLight) {
+    } else if scene.output.layers.contains(&LayerKind::SurfaceTransmittancePerLight) && stage_lights.dark.is_empty() {
         report
             .plan
             .left_out("surface_transmittance per light", "the scene has no point, spot or window lights");
     }
-    let light_layer_names = if want_per_light {
+    if scene.output.layers.contains(&LayerKind::SurfaceTransmittancePerLight) && !stage_lights.dark.is_empty() {
+        report.plan.left_out(
+            format!("surface_transmittance.<light> of {}", stage_lights.dark.join(", ")),
+            "these lights contribute nothing (zero power, irradiance or IES strength, or black): no surface light to dim",
+        );
+    }
+    let mut light_layer_names = if want_per_light {
         per_light_layer_names("inscatter", &stage_lights.names()[..n_stage])
     } else {
         Vec::new()
     };
+    // Lights that contribute nothing keep their in-scatter layer, exactly 0,
+    // so that a pipeline finds `inscatter.<light>` for every light it exported
+    // (within the per-light layer cap).
+    if scene.output.layers.contains(&LayerKind::InscatterPerLight) && !stage_lights.dark.is_empty() {
+        let room = stage::MAX_LIGHT_LAYERS.saturating_sub(n_stage);
+        let mut all = stage_lights.names()[..n_stage].to_vec();
+        all.extend(stage_lights.dark.iter().take(room).cloned());
+        let names = per_light_layer_names("inscatter", &all);
+        for name in names.into_iter().skip(n_stage) {
+            light_layer_names.push(name);
+            light_inscatter.push(vec![[0f32; 3]; w * h]);
+        }
+    }
     let surface_layer_names = if want_surface_t {
         per_light_layer_names("surface_transmittance", &stage_lights.names()[..n_stage])
     } else {

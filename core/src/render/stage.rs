@@ -89,6 +89,10 @@ pub struct StageLights<const C: usize> {
     pub points: Vec<PreparedPoint<C>>,
     /// Window lights.
     pub windows: Vec<PreparedWindow<C>>,
+    /// Names of the point, spot and window lights left out because they
+    /// contribute nothing (zero power or irradiance, black colour, zero IES
+    /// strength): their per-light in-scatter layers are exactly 0.
+    pub dark: Vec<String>,
 }
 
 /// The stage lights' share of one view ray.
