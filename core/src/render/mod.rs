@@ -57,6 +57,16 @@ pub enum RenderError {
     /// The scene is invalid (field path and message).
     #[error("invalid scene: {0}: {1}")]
     InvalidScene(String, String),
+    /// A layer holds values that are not finite in f32 storage.
+    #[error("the {layer} layer has {pixels} pixels that are not finite (NaN or ∞) in 32-bit storage: {hint}")]
+    NonFinite {
+        /// Layer name.
+        layer: String,
+        /// Pixels with a non-finite channel.
+        pixels: usize,
+        /// What is likely the cause.
+        hint: String,
+    },
     /// The thread pool could not be built.
     #[error("cannot start {threads} worker threads: {message}")]
     Threads {
@@ -150,6 +160,7 @@ pub type Progress<'a> = &'a (dyn Fn(usize, usize) + Sync);
 /// Renders a validated scene.
 pub fn render(scene: &Scene, progress: Option<Progress<'_>>) -> Result<(Images, Report), RenderError> {
     scene.validate().map_err(|(p, m)| RenderError::InvalidScene(p, m))?;
+    check_memory(scene)?;
     let threads = scene.output.threads;
     let run = || {
         let mut report = Report {
@@ -172,6 +183,7 @@ pub fn render(scene: &Scene, progress: Option<Progress<'_>>) -> Result<(Images, 
             (false, false) => render_channels::<3, 0>(scene, &mut report, progress),
         }?;
         report.stats.threads = rayon::current_num_threads();
+        check_finite(&images, &report)?;
         Ok((images, report))
     };
     if threads == 0 {
@@ -185,6 +197,93 @@ pub fn render(scene: &Scene, progress: Option<Progress<'_>>) -> Result<(Images, 
             message: e.to_string(),
         })?;
     pool.install(run)
+}
+
+/// Bytes per pixel a render holds at least: the in-scatter, transmittance,
+/// sun transmittance and error layers and per stage light two more (RGB f32,
+/// 12 bytes each), depth, and the pixel's working data.
+fn bytes_per_pixel(scene: &Scene) -> u64 {
+    let stage = scene
+        .lights
+        .iter()
+        .filter(|l| matches!(l, Light::Point(_) | Light::Spot(_) | Light::Window(_)))
+        .count()
+        .min(stage::MAX_LIGHT_LAYERS) as u64;
+    12 * (4 + 2 * stage) + 4 + 16
+}
+
+/// A frame too large for the machine is an error before any work, not an
+/// abort when an image buffer cannot be allocated (65536 × 65536 px is
+/// within the resolution's range and needs ≥ 380 GB): the estimate of
+/// [`bytes_per_pixel`] is reserved once and released untouched (no page is
+/// used; the allocator refuses what the system cannot provide).
+fn check_memory(scene: &Scene) -> Result<(), RenderError> {
+    let [w, h] = match &scene.camera {
+        crate::scene::Camera::Perspective(c) => c.resolution,
+        crate::scene::Camera::Equirectangular(c) => c.resolution,
+    };
+    let pixels = u64::from(w) * u64::from(h);
+    let bytes = pixels.saturating_mul(bytes_per_pixel(scene));
+    let fits = usize::try_from(bytes)
+        .ok()
+        .is_some_and(|b| Vec::<u8>::new().try_reserve_exact(b).is_ok());
+    if fits {
+        Ok(())
+    } else {
+        Err(RenderError::InvalidScene(
+            "camera.resolution".into(),
+            format!(
+                "{w}×{h} px needs at least {:.1} GB for its layers, more than this machine can allocate",
+                bytes as f64 / 1e9
+            ),
+        ))
+    }
+}
+
+/// No image leaves with a NaN or ∞: a layer that has one is an error naming
+/// it. Values beyond f32's range (3.4e38) come from light strengths or
+/// coefficients that large (a spot of 1e45 W); NaN where the f64 samples were
+/// finite follows from them (∞ − ∞ in the pixel filter).
+fn check_finite(images: &Images, report: &Report) -> Result<(), RenderError> {
+    let bad = |px: &[[f32; 3]]| px.iter().filter(|p| p.iter().any(|v| !v.is_finite())).count();
+    let mut layers: Vec<(&str, &[[f32; 3]])> = vec![
+        ("inscatter", &images.inscatter),
+        ("transmittance", &images.transmittance),
+        ("sun_transmittance", &images.sun_transmittance),
+        ("error", &images.error),
+    ];
+    for (name, px) in images.light_layer_names.iter().zip(&images.light_inscatter) {
+        layers.push((name, px));
+    }
+    for (name, px) in images.surface_layer_names.iter().zip(&images.light_surface_transmittance) {
+        layers.push((name, px));
+    }
+    for (layer, px) in layers {
+        let pixels = bad(px);
+        if pixels > 0 {
+            let hint = if report.stats.non_finite_pixels == 0 {
+                "the values exceed the range of f32 (3.4e38); light strengths or medium coefficients this large overflow it, so scale them down".to_string()
+            } else {
+                format!(
+                    "{} samples were already not finite in f64; this is a bug, please report the scene",
+                    report.stats.non_finite_pixels
+                )
+            };
+            return Err(RenderError::NonFinite {
+                layer: layer.to_string(),
+                pixels,
+                hint,
+            });
+        }
+    }
+    if images.depth.iter().any(|v| v.is_nan()) {
+        return Err(RenderError::NonFinite {
+            layer: "depth".into(),
+            pixels: images.depth.iter().filter(|v| v.is_nan()).count(),
+            hint: "this is a bug, please report the scene".into(),
+        });
+    }
+    Ok(())
 }
 
 fn medium_coefficients(m: &Medium) -> Vec<&Coefficient> {

@@ -1,0 +1,62 @@
+"""Inputs within the documented ranges that used to end badly (found by an
+adversarial sweep of `tyndall.render`): no image may leave with a NaN or ∞,
+and a frame too large for the machine is an error, not an abort."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import tyndall
+
+
+def spot_stage(power_w: float) -> dict:
+    return {
+        "version": 1,
+        "camera": {"type": "perspective", "position": [0, -8, 2],
+                   "orientation": {"look_at": {"target": [0, 0, 1.5], "up": [0, 0, 1]}}, "resolution": [32, 18]},
+        "meshes": [{"name": "floor", "positions": [[-9, -9, 0], [9, -9, 0], [9, 9, 0], [-9, 9, 0]],
+                    "triangles": [[0, 1, 2], [0, 2, 3]]}],
+        "lights": [{"type": "spot", "name": "key", "position": [0, 0, 4], "power_w": power_w, "spot_size_deg": 40,
+                    "orientation": {"look_at": {"target": [0, 0, 0], "up": [0, 1, 0]}}}],
+        "media": [{"type": "homogeneous", "name": "haze", "scattering": 0.03}],
+        "output": {"layers": ["inscatter", "error", "inscatter_per_light"], "tolerance": 1e-2, "threads": 1},
+    }
+
+
+def test_strengths_beyond_f32_are_an_error_naming_the_layer() -> None:
+    """A 1e45 W spot overflows f32 storage (3.4e38): the render fails with a
+    message naming the layer and the cause, instead of returning ∞ and NaN
+    pixels with a report that counted none."""
+    with pytest.raises(tyndall.RenderFailed, match=r"inscatter layer has \d+ pixels that are not finite.*f32"):
+        tyndall.render(spot_stage(1e45))
+
+
+def test_large_but_representable_strengths_render_finite() -> None:
+    """1e30 W is absurd but fits: finite, and linear in the power."""
+    big, _ = tyndall.render(spot_stage(1e30))
+    unit, _ = tyndall.render(spot_stage(1.0))
+    assert np.all(np.isfinite(big["inscatter"])) and np.all(np.isfinite(big["error"]))
+    lit = unit["inscatter"] > 1e-6 * unit["inscatter"].max()
+    ratio = big["inscatter"][lit].astype(np.float64) / unit["inscatter"][lit]
+    np.testing.assert_allclose(ratio, 1e30, rtol=1e-5)
+
+
+def test_a_frame_too_large_for_memory_is_a_scene_error() -> None:
+    """65536 × 65536 px is within the resolution's range but needs hundreds of
+    GB: a SceneFormatError naming camera.resolution, not SIGABRT (run in a
+    subprocess so that a regression cannot take the test runner down)."""
+    code = (
+        "import tyndall\n"
+        "scene = {'version': 1, 'camera': {'type': 'equirectangular', 'position': [0, 0, 0],"
+        " 'resolution': [65536, 65536]}, 'output': {'layers': ['depth'], 'threads': 1}}\n"
+        "try:\n"
+        "    tyndall.render(scene)\n"
+        "except tyndall.SceneFormatError as e:\n"
+        "    print('PATH', e.path)\n"
+    )
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0, run.stderr[-2000:]
+    assert "PATH camera.resolution" in run.stdout
