@@ -60,3 +60,27 @@ def test_a_frame_too_large_for_memory_is_a_scene_error() -> None:
     run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert run.returncode == 0, run.stderr[-2000:]
     assert "PATH camera.resolution" in run.stdout
+
+
+@pytest.mark.parametrize("bad", [float("nan"), float("inf"), -float("inf"), np.float32("nan")])
+def test_non_finite_numbers_in_a_dict_name_the_field(bad: float) -> None:
+    """JSON cannot hold NaN or ∞; the loader used to point at a column of the
+    JSON text the dict was turned into, which the caller never wrote."""
+    scene = spot_stage(100.0)
+    scene["lights"][0]["position"][1] = bad
+    with pytest.raises(tyndall.SceneFormatError, match="must be a finite number") as err:
+        tyndall.render(scene)
+    assert err.value.path == "lights[0].position[1]"
+
+
+@pytest.mark.parametrize(
+    ("override", "path"),
+    [({"threads": -1}, "output.threads"), ({"threads": 10**20}, "output.threads"),
+     ({"tolerance": "0.1"}, "output.tolerance"), ({"layers": "inscatter"}, "output.layers")],
+)
+def test_bad_keyword_overrides_name_the_argument(override: dict, path: str) -> None:
+    """Used to raise OverflowError/TypeError without a name, or split a string of
+    layers into characters (`unknown layer "i"`)."""
+    with pytest.raises(tyndall.SceneFormatError) as err:
+        tyndall.render(spot_stage(100.0), **override)
+    assert err.value.path == path

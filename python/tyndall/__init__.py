@@ -15,6 +15,7 @@ Composite a surface render through the medium with ``final = surface * T + L``
 from __future__ import annotations
 
 import json
+import math
 import os
 from collections.abc import Mapping, Sequence
 from typing import Any, Union
@@ -51,13 +52,66 @@ __all__ = [
 ]
 
 
+def _scene_error(path: str, detail: str, source: str = "<dict>") -> SceneFormatError:
+    """A :class:`SceneFormatError` as the loader raises it (``source: path: detail``)."""
+    err = SceneFormatError(f"{source}: {path}: {detail}")
+    err.path, err.source_name, err.detail = path, source, detail
+    return err
+
+
+def _non_finite(value: Any, path: str) -> tuple[str, float] | None:
+    """The path and value of the first NaN or ±∞ in a scene dict (JSON cannot hold
+    them, and the loader would point into text the caller never wrote)."""
+    if isinstance(value, (float, np.floating)):
+        return None if math.isfinite(value) else (path, float(value))
+    if isinstance(value, Mapping):
+        for key, item in value.items():
+            found = _non_finite(item, f"{path}.{key}" if path else str(key))
+            if found:
+                return found
+    elif isinstance(value, (list, tuple)):
+        for i, item in enumerate(value):
+            found = _non_finite(item, f"{path}[{i}]")
+            if found:
+                return found
+    return None
+
+
 def as_scene(scene: SceneLike) -> Scene:
     """A :class:`Scene` from a Scene, a path to a JSON file, or a dict in the scene format."""
     if isinstance(scene, Scene):
         return scene
     if isinstance(scene, Mapping):
+        found = _non_finite(scene, "")
+        if found:
+            raise _scene_error(found[0], f"must be a finite number, got {found[1]}")
         return scene_from_json(json.dumps(scene, allow_nan=True), "<dict>")
     return load_scene(os.fspath(scene))
+
+
+def _checked_overrides(
+    tolerance: float | None, threads: int | None, layers: Sequence[str] | None
+) -> tuple[float | None, int | None, list[str] | None]:
+    """The keyword overrides of ``output``, checked here so that an error names the argument."""
+    if tolerance is not None:
+        if isinstance(tolerance, bool) or not isinstance(tolerance, (int, float, np.integer, np.floating)):
+            raise _scene_error(
+                "output.tolerance", f"tolerance must be a number, got {type(tolerance).__name__}", "<render>"
+            )
+        tolerance = float(tolerance)
+    if threads is not None:
+        if isinstance(threads, bool) or not isinstance(threads, (int, np.integer)) or not 0 <= threads < 2**32:
+            raise _scene_error(
+                "output.threads", f"threads must be an integer in 0..2^32 (0 = all cores), got {threads!r}", "<render>"
+            )
+        threads = int(threads)
+    if layers is not None:
+        if isinstance(layers, str):
+            raise _scene_error(
+                "output.layers", f"layers must be a list of layer names, not the string {layers!r}", "<render>"
+            )
+        layers = list(layers)
+    return tolerance, threads, layers
 
 
 def render(
@@ -78,7 +132,8 @@ def render(
     override the scene's ``output`` settings. Invalid scenes raise
     :class:`SceneFormatError` whose ``path`` names the field.
     """
-    images, report_json = _render(as_scene(scene), tolerance, threads, list(layers) if layers is not None else None)
+    tolerance, threads, layers = _checked_overrides(tolerance, threads, layers)
+    images, report_json = _render(as_scene(scene), tolerance, threads, layers)
     return dict(images), json.loads(report_json)
 
 
@@ -92,6 +147,7 @@ def render_to_files(
     threads: int | None = None,
 ) -> dict[str, Any]:
     """Render and write a multi-layer EXR to ``out`` (atomically), the report JSON and a PNG preview if asked."""
+    tolerance, threads, _ = _checked_overrides(tolerance, threads, None)
     report_json = _render_to_files(
         as_scene(scene),
         os.fspath(out),
