@@ -87,6 +87,10 @@ tagged_enum_deserialize!(Medium, "medium", {
 /// The scene format version this build reads and writes.
 pub const SCENE_VERSION: u32 = 1;
 
+/// Longest name of a point, spot or window light, bytes: its layer's channel
+/// `surface_transmittance.<name>_16.R` must fit OpenEXR's 255 bytes.
+pub const MAX_STAGE_LIGHT_NAME_BYTES: usize = 228;
+
 /// A rejected scene: where (a field path such as `media[0].phase.g`) and why.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 #[error("{source_name}: {path}: {message}")]
@@ -1399,6 +1403,17 @@ impl Validator {
         }
         for (i, l) in s.lights.iter().enumerate() {
             self.push(format!("lights[{i}]"));
+            if let Light::Point(PointLight { name, .. }) | Light::Spot(SpotLight { name, .. }) | Light::Window(WindowLight { name, .. }) = l
+                && name.len() > MAX_STAGE_LIGHT_NAME_BYTES
+            {
+                self.fail(
+                    "name",
+                    format!(
+                        "{} bytes long; at most {MAX_STAGE_LIGHT_NAME_BYTES}, so that `surface_transmittance.<name>.R` fits OpenEXR's 255-byte channel names",
+                        name.len()
+                    ),
+                );
+            }
             match l {
                 Light::Sun(SunLight {
                     direction_to_sun,

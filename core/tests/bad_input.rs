@@ -432,3 +432,21 @@ fn hostile_numbers_never_panic() {
         spans.len() * hostile.len()
     );
 }
+
+#[test]
+fn stage_light_names_fit_exr_channel_names() {
+    // A 300-byte spot name used to render and then fail writing the EXR
+    // (`surface_transmittance.<name>.R` over OpenEXR's 255 bytes).
+    let long = "a".repeat(tyndall_core::scene::MAX_STAGE_LIGHT_NAME_BYTES + 1);
+    let e = assert_path(
+        &with(&format!(r#","lights":[{{"type":"spot","name":"{long}","position":[0,0,3]}}]"#)),
+        "lights[0].name",
+    );
+    assert!(e.message.contains("255-byte"), "{e}");
+    let fits = "a".repeat(tyndall_core::scene::MAX_STAGE_LIGHT_NAME_BYTES);
+    Scene::from_json_str(
+        &with(&format!(r#","lights":[{{"type":"spot","name":"{fits}","position":[0,0,3]}}]"#)),
+        "<test>",
+    )
+    .expect("a name of the largest length is accepted");
+}
