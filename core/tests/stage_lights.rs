@@ -149,6 +149,7 @@ fn isotropic_point_light_matches_sun_et_al_2005_airlight() {
                 shadows: None,
             }],
             windows: vec![],
+            dark: vec![],
         };
         let media = [world(beta, 0.0, Phase::Iso)];
         let ray = ViewRay {
@@ -438,6 +439,7 @@ fn run_case(case: &Case, rays: &[(DVec3, DVec3)], tol: f64) -> (usize, usize, us
     let mut lights = StageLights {
         points: vec![PreparedPoint { light: src, shadows: None }],
         windows: vec![],
+        dark: vec![],
     };
     let bvh = if case.tris.is_empty() {
         None
@@ -682,6 +684,7 @@ fn ray_exactly_through_the_light_is_finite_and_reported() {
     let lights = StageLights {
         points: vec![PreparedPoint { light: src, shadows: None }],
         windows: vec![],
+        dark: vec![],
     };
     let media = [world(0.1, 0.0, Phase::Hg(0.3))];
     let ray = ViewRay {
@@ -778,6 +781,7 @@ fn window_light_with_occluder_matches_brute_force() {
             light: WindowSource::new("w", to_light, [irradiance; 3], &corners),
             shadows: None,
         }],
+        dark: vec![],
     };
     lights.build_shadows(&[IndexedMesh {
         positions: &positions,
@@ -969,6 +973,7 @@ fn asymmetric_ies_gets_an_elliptical_volume_with_unchanged_results() {
     let lights = |src: PointSource<3>| StageLights {
         points: vec![PreparedPoint { light: src, shadows: None }],
         windows: vec![],
+        dark: vec![],
     };
     let (l_ellipse, l_circle) = (lights(with_ellipse), lights(circular));
     let (mut crossed_ellipse, mut crossed_circle) = (0, 0);
@@ -1093,6 +1098,7 @@ fn topology_code_of_a_traced_ray_equals_the_geometric_one() {
     let lights = StageLights {
         points: vec![spot("a", pa, aa, 30.0, 0.3), spot("b", pb, ab, 12.0, 0.1)],
         windows: vec![],
+        dark: vec![],
     };
     let floor = Triangle::new(
         DVec3::new(-50.0, -50.0, 0.0),
