@@ -84,3 +84,19 @@ def test_bad_keyword_overrides_name_the_argument(override: dict, path: str) -> N
     with pytest.raises(tyndall.SceneFormatError) as err:
         tyndall.render(spot_stage(100.0), **override)
     assert err.value.path == path
+
+
+def test_spectra_outside_rec709_are_kept_and_counted() -> None:
+    """Scattering ∝ λ^20 puts the light at the red end: the spectral path's
+    Rec.709 values have negative channels. They are kept (not clamped) and the
+    report counts them instead of saying nothing."""
+    scene = spot_stage(500.0)
+    scene["media"][0]["scattering"] = {"power_law": {"at_550nm": 0.1, "exponent": 20}}
+    scene["output"]["spectral"] = "auto"
+    layers, report = tyndall.render(scene)
+    negative = int((layers["inscatter"] < 0).any(axis=-1).sum())
+    assert negative > 0
+    assert any(w.startswith(f"{negative} pixels have a negative in-scatter channel") and "gamut" in w
+               for w in report["warnings"])
+    grey, grey_report = tyndall.render(spot_stage(500.0))
+    assert not any("negative" in w for w in grey_report["warnings"])

@@ -184,6 +184,19 @@ pub fn render(scene: &Scene, progress: Option<Progress<'_>>) -> Result<(Images, 
         }?;
         report.stats.threads = rayon::current_num_threads();
         check_finite(&images, &report)?;
+        // Spectra outside the Rec.709 gamut convert to negative channels
+        // (a scattering coefficient ∝ λ^±20 concentrates the light at one end
+        // of the spectrum); they are kept, not clamped, and counted.
+        let negative = images.inscatter.iter().filter(|p| p.iter().any(|v| *v < 0.0)).count();
+        if negative > 0 {
+            report.warnings.push(if spectral {
+                format!(
+                    "{negative} pixels have a negative in-scatter channel: their spectrum lies outside the Rec.709 gamut (kept as computed, not clamped)"
+                )
+            } else {
+                format!("{negative} pixels have a negative in-scatter channel in the RGB path: this is a bug, please report the scene")
+            });
+        }
         Ok((images, report))
     };
     if threads == 0 {
