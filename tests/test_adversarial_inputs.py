@@ -1,6 +1,7 @@
 """Inputs within the documented ranges that used to end badly (found by an
 adversarial sweep of `tyndall.render`): no image may leave with a NaN or ∞,
-and a frame too large for the machine is an error, not an abort."""
+a frame too large for the machine is an error, not an abort, and a light that
+contributes nothing keeps its per-light layer."""
 
 from __future__ import annotations
 
@@ -12,7 +13,8 @@ import pytest
 import tyndall
 
 
-def spot_stage(power_w: float) -> dict:
+def spot_stage(power_w: float, *others: dict) -> dict:
+    """A 40° spot over a floor in haze, plus the lights `others`."""
     return {
         "version": 1,
         "camera": {"type": "perspective", "position": [0, -8, 2],
@@ -20,9 +22,10 @@ def spot_stage(power_w: float) -> dict:
         "meshes": [{"name": "floor", "positions": [[-9, -9, 0], [9, -9, 0], [9, 9, 0], [-9, 9, 0]],
                     "triangles": [[0, 1, 2], [0, 2, 3]]}],
         "lights": [{"type": "spot", "name": "key", "position": [0, 0, 4], "power_w": power_w, "spot_size_deg": 40,
-                    "orientation": {"look_at": {"target": [0, 0, 0], "up": [0, 1, 0]}}}],
+                    "orientation": {"look_at": {"target": [0, 0, 0], "up": [0, 1, 0]}}}, *others],
         "media": [{"type": "homogeneous", "name": "haze", "scattering": 0.03}],
-        "output": {"layers": ["inscatter", "error", "inscatter_per_light"], "tolerance": 1e-2, "threads": 1},
+        "output": {"layers": ["inscatter", "error", "inscatter_per_light", "surface_transmittance_per_light"],
+                   "tolerance": 1e-2, "threads": 1},
     }
 
 
@@ -100,3 +103,39 @@ def test_spectra_outside_rec709_are_kept_and_counted() -> None:
                for w in report["warnings"])
     grey, grey_report = tyndall.render(spot_stage(500.0))
     assert not any("negative" in w for w in grey_report["warnings"])
+
+
+DARK = [
+    {"type": "spot", "name": "off", "position": [1, 0, 4], "power_w": 0.0, "spot_size_deg": 30},
+    {"type": "point", "name": "off", "position": [1, 0, 4], "power_w": 100.0, "color": [0, 0, 0]},
+    {"type": "window", "name": "off", "direction_to_light": [0, 0.3, 1], "irradiance_w_m2": 0.0,
+     "aperture": [[-1, -1, 3], [1, -1, 3], [1, 1, 3], [-1, 1, 3]]},
+]
+
+
+@pytest.mark.parametrize("dark", DARK, ids=["zero power", "black", "zero irradiance"])
+def test_a_dark_light_keeps_its_inscatter_layer_at_zero(dark: dict) -> None:
+    """A light that contributes nothing (zero power or irradiance, black colour,
+    zero IES strength) is left out of the computation, and the report says so,
+    but `inscatter.<light>` is still there, exactly 0, for a pipeline that
+    exported the light. (Both per-light layers used to vanish.)"""
+    layers, report = tyndall.render(spot_stage(500.0, dark))
+    assert "inscatter.off" in layers
+    assert np.all(layers["inscatter.off"] == 0.0)
+    # The lit light is unaffected and alone in the total.
+    np.testing.assert_array_equal(layers["inscatter.key"], layers["inscatter"])
+    assert layers["inscatter"].max() > 0.0
+    assert "surface_transmittance.key" in layers
+    left_out = {entry["what"]: entry["why"] for entry in report["plan"]["left_out"]}
+    assert any("off" in what and "no contribution" in why for what, why in left_out.items())
+    assert any(what.startswith("surface_transmittance") and "off" in what for what in left_out)
+
+
+def test_every_stage_light_dark_is_not_reported_as_no_lights() -> None:
+    """With every stage light dark the report used to say the scene had none."""
+    scene = spot_stage(500.0)
+    scene["lights"] = [DARK[0]]
+    layers, report = tyndall.render(scene)
+    assert np.all(layers["inscatter.off"] == 0.0) and np.all(layers["inscatter"] == 0.0)
+    whys = [entry["why"] for entry in report["plan"]["left_out"]]
+    assert not any("no point, spot or window lights" in why for why in whys)
