@@ -1314,7 +1314,14 @@ impl Validator {
                 if self.vec3("look_at.target", *target) && self.vec3("look_at.up", *up) {
                     let fwd = DVec3::from(*target) - DVec3::from(position);
                     let upv = DVec3::from(*up);
-                    if fwd.length() < 1e-12 {
+                    if !fwd.length().is_finite() {
+                        self.fail(
+                            "look_at.target",
+                            "the view direction target − position is too long for f64 (its length overflows): bring the camera and target within ±1e150 m",
+                        );
+                    } else if !upv.length().is_finite() {
+                        self.fail("look_at.up", "the up vector's length overflows f64: give a unit vector");
+                    } else if fwd.length() < 1e-12 {
                         self.fail(
                             "look_at.target",
                             "target coincides with the camera position: zero-length view direction",
@@ -1337,7 +1344,9 @@ impl Validator {
             }
         }
         let n = q.iter().map(|x| x * x).sum::<f64>().sqrt();
-        if n.is_nan() || n <= 1e-12 || !n.is_finite() {
+        if n.is_infinite() {
+            self.fail(field, "the quaternion's norm overflows f64: give a unit quaternion");
+        } else if n.is_nan() || n <= 1e-12 {
             self.fail(field, "zero-length quaternion");
         }
     }

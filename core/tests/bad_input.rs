@@ -450,3 +450,27 @@ fn stage_light_names_fit_exr_channel_names() {
     )
     .expect("a name of the largest length is accepted");
 }
+
+#[test]
+fn vectors_whose_length_overflows_are_named_as_such() {
+    // Finite but huge: the messages used to say "up is parallel to the view
+    // direction" and "zero-length quaternion".
+    let cam = |pos: &str, orient: &str| {
+        format!(r#"{{"version":1,"camera":{{"type":"perspective","position":{pos},"orientation":{orient},"resolution":[4,3]}}}}"#)
+    };
+    let e = assert_path(
+        &cam("[1e300,0,2.5]", r#"{"look_at":{"target":[0,0,2.2]}}"#),
+        "camera.orientation.look_at.target",
+    );
+    assert!(e.message.contains("overflows"), "{e}");
+    let e = assert_path(
+        &cam("[0,-10,2.5]", r#"{"look_at":{"target":[0,0,2.2],"up":[0,0,1e300]}}"#),
+        "camera.orientation.look_at.up",
+    );
+    assert!(e.message.contains("overflows"), "{e}");
+    let e = assert_path(
+        &cam("[0,-10,2.5]", r#"{"quaternion_wxyz":[1e300,1e300,0,0]}"#),
+        "camera.orientation.quaternion_wxyz",
+    );
+    assert!(e.message.contains("overflows"), "{e}");
+}
