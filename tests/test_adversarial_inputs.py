@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -139,3 +140,24 @@ def test_every_stage_light_dark_is_not_reported_as_no_lights() -> None:
     assert np.all(layers["inscatter.off"] == 0.0) and np.all(layers["inscatter"] == 0.0)
     whys = [entry["why"] for entry in report["plan"]["left_out"]]
     assert not any("no point, spot or window lights" in why for why in whys)
+
+
+UPLIGHT = str(Path(__file__).resolve().parents[1] / "core" / "tests" / "data" / "ies" / "typec_uplight_90_180.ies")
+
+
+def test_an_ies_profile_dark_inside_the_cone_is_left_out_with_its_reason() -> None:
+    """An uplight's file (0 below 90°) on a 40° spot pointing down emits
+    nothing: the light is left out, named with the angles, and its layer is 0
+    (it used to be listed as computed). The same file on a point light, which
+    reaches every direction, is computed."""
+    dark = {"type": "spot", "name": "off", "position": [1, 0, 4], "power_w": 800.0, "spot_size_deg": 40,
+            "orientation": {"look_at": {"target": [1, 0, 0], "up": [0, 1, 0]}}, "ies": {"file": UPLIGHT}}
+    layers, report = tyndall.render(spot_stage(500.0, dark))
+    assert np.all(layers["inscatter.off"] == 0.0)
+    whys = [e["why"] for e in report["plan"]["left_out"] if "off" in e["what"]]
+    assert any("IES profile is 0 below 90.0°" in why and "20.0°" in why for why in whys), whys
+    assert not any("off" in e["what"] for e in report["plan"]["computed"])
+    lit = dict(dark, type="point")
+    del lit["spot_size_deg"]
+    layers, report = tyndall.render(spot_stage(500.0, lit))
+    assert layers["inscatter.off"].max() > 0.0

@@ -6,7 +6,7 @@
 
 use glam::DVec3;
 use proptest::prelude::*;
-use std::f64::consts::PI;
+use std::f64::consts::{FRAC_PI_2, PI};
 use std::path::PathBuf;
 use tyndall_core::light::ies::{CYCLES_IES_SCALE, HorizontalSymmetry, IesProfile, IesVersion, PhotometricType, Tilt, UnitsType};
 
@@ -311,6 +311,15 @@ fn uplight_90_180() {
     // Straight up: the last node (Cycles returns 0 exactly there; we include the end).
     assert_close!(p.candela(DVec3::Z), 100.0);
     assert_close!(p.bounding_half_angle(), PI);
+    // Nothing below 90° (a spot pointing down with this file emits nothing).
+    assert_close!(p.unlit_half_angle(), FRAC_PI_2, 1e-9);
+    for v in [0.0, 30.0, 60.0, 89.9] {
+        for h in [0.0, 90.0, 200.0] {
+            assert_eq!(p.candela(dir(v, h)), 0.0);
+        }
+    }
+    // A downlight is lit from its axis on.
+    assert_eq!(load("downlight_cutoff60.ies").unlit_half_angle(), 0.0);
 }
 
 #[test]

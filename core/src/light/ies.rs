@@ -1143,6 +1143,34 @@ impl Table {
         bound.min(self.bound_deg)
     }
 
+    /// Smallest vertical angle (deg) below which the interpolated value is 0
+    /// for every horizontal angle (the mirror of [`Table::segment_bound`]'s
+    /// test, over every segment); 180 when the table is 0 everywhere.
+    fn lowest_lit_deg(&self) -> f64 {
+        let split = |idx: [usize; 4]| ([idx[1], idx[2]], [idx[0], idx[3]]);
+        for j in 0..self.v.len() - 1 {
+            if self.v[j] >= self.bound_deg {
+                break;
+            }
+            let (v_in, v_out) = split(self.v_idx(j));
+            let any = |ks: [usize; 2], rs: [usize; 2]| ks.iter().any(|&k| rs.iter().any(|&r| self.at(k, r) != 0.0));
+            if self.h.len() < 2 {
+                // No horizontal segments: any non-zero row the cell reads (conservative).
+                if v_in.iter().chain(&v_out).any(|&r| self.row_nonzero(r)) {
+                    return self.v[j];
+                }
+                continue;
+            }
+            for i in 0..self.h.len() - 1 {
+                let (h_in, h_out) = split(self.h_idx(i));
+                if any(h_in, v_in) || any(h_out, v_out) {
+                    return self.v[j];
+                }
+            }
+        }
+        180.0
+    }
+
     /// For every cell, whether the interval Catmull-Rom bound of the unclamped
     /// interpolant contains both signs (else it is > 0 or ≤ 0 throughout).
     fn compute_sign_cells(&self) -> Vec<bool> {
@@ -1295,6 +1323,14 @@ impl IesProfile {
     /// is exactly 0; π when light can go straight up, 0 when the table is all zero.
     pub fn bounding_half_angle(&self) -> f64 {
         self.table.bound_deg.min(180.0).to_radians()
+    }
+
+    /// Largest half-angle (radians) about local −Z inside which the intensity
+    /// is exactly 0 (an uplight's profile: π/2); π when the table is all zero.
+    pub fn unlit_half_angle(&self) -> f64 {
+        // Less the tolerance within which an angle just below the table's
+        // first node is read as that node.
+        (self.table.lowest_lit_deg().min(180.0) - END_TOL).max(0.0).to_radians()
     }
 
     /// The vertical and horizontal angles of Cycles' table, rad (where its

@@ -561,6 +561,23 @@ fn prepare_stage_lights<const C: usize>(scene: &Scene, report: &mut Report) -> R
                     Light::Spot(p) => crate::light::PointSource::from_spot(p, colour_channels::<C>(color), ies),
                     _ => unreachable!("matched above"),
                 };
+                // A profile that is 0 inside the whole of the light's own cone
+                // (an uplight's file on a spot pointing down, or an all-zero file).
+                if let Some((profile, _)) = &src.ies {
+                    let (reach, unlit) = (src.shape.cos_reach().clamp(-1.0, 1.0).acos(), profile.unlit_half_angle());
+                    if reach <= unlit {
+                        report.plan.left_out(
+                            label,
+                            format!(
+                                "no contribution: its IES profile is 0 below {:.1}° from the axis, and its distribution reaches only {:.1}° (its inscatter.<light> layer is 0)",
+                                unlit.to_degrees(),
+                                reach.to_degrees()
+                            ),
+                        );
+                        out.dark.push(light_name(l).to_string());
+                        continue;
+                    }
+                }
                 report.plan.computed(label, describe_point(&src, power_w));
                 out.points.push(stage::PreparedPoint { light: src, shadows: None });
             }
