@@ -565,7 +565,7 @@ fn prepare_stage_lights<const C: usize>(scene: &Scene, report: &mut Report) -> R
                 // (an uplight's file on a spot pointing down, or an all-zero file).
                 if let Some((profile, _)) = &src.ies {
                     let (reach, unlit) = (src.shape.cos_reach().clamp(-1.0, 1.0).acos(), profile.unlit_half_angle());
-                    if reach <= unlit {
+                    if reach <= unlit || profile.max_candela() == 0.0 {
                         report.plan.left_out(
                             label,
                             format!(
