@@ -196,7 +196,6 @@ impl Table {
     }
 }
 
-/// Nishita eq 8: `k(x) = max(p + (1 − p)·|2 mod(x, Δ) − Δ|/Δ, 0)`.
 /// The angles in `[0, span]` where Nishita's `k(x)` (eq 8, period `period`,
 /// minimum ratio `p`) or eq 10's parity is not smooth: the period boundaries
 /// (peaks of `k`, parity jumps), the troughs, and for `p < 0` where the
@@ -222,6 +221,7 @@ fn pattern_kinks(period: f64, p: f64, span: f64) -> Vec<f64> {
     out
 }
 
+/// Nishita eq 8: `k(x) = max(p + (1 − p)·|2 mod(x, Δ) − Δ|/Δ, 0)`.
 #[inline]
 fn nishita_k(x: f64, period: f64, p: f64) -> f64 {
     let m = x.rem_euclid(period);
