@@ -227,7 +227,7 @@ fn bytes_per_pixel(scene: &Scene) -> u64 {
 
 /// A frame too large for the machine is an error before any work, not an
 /// abort when an image buffer cannot be allocated (65536 × 65536 px is
-/// within the resolution's range and needs ≥ 380 GB): the estimate of
+/// within the resolution's range and needs ≥ 290 GB): the estimate of
 /// [`bytes_per_pixel`] is reserved once and released untouched (no page is
 /// used; the allocator refuses what the system cannot provide).
 fn check_memory(scene: &Scene) -> Result<(), RenderError> {
