@@ -1120,55 +1120,41 @@ impl Table {
         bound
     }
 
-    /// Vertical angle (deg) beyond which the interpolated value is 0 for every
-    /// horizontal angle in segment `i` (`h[i]..h[i+1]`). On a cell (segment i
-    /// in h, segment j in v) the value is `max(0, Σ_k Σ_r w_k w_r T[k][r])`
+    /// Whether the cell of horizontal segment `i` and vertical segment `j` may
+    /// be non-zero. On a cell the value is `max(0, Σ_k Σ_r w_k w_r T[k][r])`
     /// over the four columns k and rows r the cell reads; the inner weights
     /// (b, c) of Catmull-Rom are ≥ 0 and the outer ones (a, d) ≤ 0 (an index
     /// read twice, at the table's ends, gets both signs), and T ≥ 0 (the
     /// parser rejects negative candela). So a product `w_k w_r` can be
     /// positive only for inner×inner or outer×outer pairs, and if T is 0 on
     /// all of those the cell is exactly 0 after the clamp.
-    fn segment_bound(&self, i: usize) -> f64 {
+    fn cell_may_be_lit(&self, i: usize, j: usize) -> bool {
         let split = |idx: [usize; 4]| ([idx[1], idx[2]], [idx[0], idx[3]]);
         let (h_in, h_out) = split(self.h_idx(i));
-        let mut bound = 0.0f64;
-        for j in 0..self.v.len() - 1 {
-            let (v_in, v_out) = split(self.v_idx(j));
-            let any = |ks: [usize; 2], rs: [usize; 2]| ks.iter().any(|&k| rs.iter().any(|&r| self.at(k, r) != 0.0));
-            if any(h_in, v_in) || any(h_out, v_out) {
-                bound = self.v[j + 1];
-            }
-        }
+        let (v_in, v_out) = split(self.v_idx(j));
+        let any = |ks: [usize; 2], rs: [usize; 2]| ks.iter().any(|&k| rs.iter().any(|&r| self.at(k, r) != 0.0));
+        any(h_in, v_in) || any(h_out, v_out)
+    }
+
+    /// Vertical angle (deg) beyond which the interpolated value is 0 for every
+    /// horizontal angle in segment `i` (`h[i]..h[i+1]`): the end of its last
+    /// cell that [`Table::cell_may_be_lit`].
+    fn segment_bound(&self, i: usize) -> f64 {
+        let bound = (0..self.v.len() - 1)
+            .rev()
+            .find(|&j| self.cell_may_be_lit(i, j))
+            .map_or(0.0, |j| self.v[j + 1]);
         bound.min(self.bound_deg)
     }
 
     /// Smallest vertical angle (deg) below which the interpolated value is 0
-    /// for every horizontal angle (the mirror of [`Table::segment_bound`]'s
-    /// test, over every segment); 180 when the table is 0 everywhere.
+    /// for every horizontal angle: the start of the first row of cells any of
+    /// which [`Table::cell_may_be_lit`]; 180 when the table is 0 everywhere.
     fn lowest_lit_deg(&self) -> f64 {
-        let split = |idx: [usize; 4]| ([idx[1], idx[2]], [idx[0], idx[3]]);
-        for j in 0..self.v.len() - 1 {
-            if self.v[j] >= self.bound_deg {
-                break;
-            }
-            let (v_in, v_out) = split(self.v_idx(j));
-            let any = |ks: [usize; 2], rs: [usize; 2]| ks.iter().any(|&k| rs.iter().any(|&r| self.at(k, r) != 0.0));
-            if self.h.len() < 2 {
-                // No horizontal segments: any non-zero row the cell reads (conservative).
-                if v_in.iter().chain(&v_out).any(|&r| self.row_nonzero(r)) {
-                    return self.v[j];
-                }
-                continue;
-            }
-            for i in 0..self.h.len() - 1 {
-                let (h_in, h_out) = split(self.h_idx(i));
-                if any(h_in, v_in) || any(h_out, v_out) {
-                    return self.v[j];
-                }
-            }
-        }
-        180.0
+        (0..self.v.len() - 1)
+            .take_while(|&j| self.v[j] < self.bound_deg)
+            .find(|&j| (0..self.h.len() - 1).any(|i| self.cell_may_be_lit(i, j)))
+            .map_or(180.0, |j| self.v[j])
     }
 
     /// For every cell, whether the interval Catmull-Rom bound of the unclamped
