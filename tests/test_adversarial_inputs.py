@@ -5,6 +5,9 @@ contributes nothing keeps its per-light layer."""
 
 from __future__ import annotations
 
+import copy
+import json
+import math
 import subprocess
 import sys
 from pathlib import Path
@@ -161,3 +164,78 @@ def test_an_ies_profile_dark_inside_the_cone_is_left_out_with_its_reason() -> No
     del lit["spot_size_deg"]
     layers, report = tyndall.render(spot_stage(500.0, lit))
     assert layers["inscatter.off"].max() > 0.0
+
+
+def needle_lobe_sun_scene(medium: dict, diameter_deg: float) -> dict:
+    """A 2000 mm lens (1.03° across) aimed at the sun's centre through haze;
+    the odd resolution puts the centre pixel's ray exactly on the sun."""
+    to_sun = [0.0, 0.8, 0.6]
+    return {
+        "version": 1,
+        "camera": {"type": "perspective", "position": [0, 0, 0], "focal_length_mm": 2000.0,
+                   "orientation": {"look_at": {"target": to_sun, "up": [0, 0, 1]}}, "resolution": [25, 15]},
+        "lights": [{"type": "sun", "direction_to_sun": to_sun, "strength_w_m2": 3.0,
+                    "angular_diameter_deg": diameter_deg}],
+        "media": [medium],
+        "output": {"layers": ["inscatter", "error"], "tolerance": 1e-3, "threads": 1, "pixel_filter": {"type": "none"}},
+    }
+
+
+NEEDLE_MEDIA = {
+    "henyey-greenstein": {"type": "homogeneous", "scattering": 0.002,
+                          "bounds": {"box": {"min": [-50, -50, -50], "max": [50, 50, 50]}},
+                          "phase": {"type": "henyey_greenstein", "g": 0.9999}},
+    "height-fog": {"type": "height_fog", "scale_height_m": 20.0,
+                   "mie": {"scattering": 0.002, "phase": {"type": "henyey_greenstein", "g": 0.999999}}},
+}
+
+
+def _phase_of(medium: dict) -> dict:
+    return medium["phase"] if "phase" in medium else medium["mie"]["phase"]
+
+
+@pytest.mark.parametrize("medium", list(NEEDLE_MEDIA))
+def test_a_sun_through_a_needle_phase_lobe_finishes_and_matches_the_closed_form(medium: str) -> None:
+    """HG with g = 0.9999 (lobe 1e-4 rad wide) or 0.999999 under the default
+    0.526° sun used to hang averaging the lobe over the disc. Along each view
+    ray the sun's phase factor is a constant, so the render divided by the same
+    render with an isotropic phase is 4π·p̄(θ). At the centre pixel (θ = 0) the
+    cap average of HG has a closed form, 2π∫_{cos δ}^1 p dμ / (2π(1 − cos δ)),
+    and is flat (a point sun would not be: at g = 0.999999 a ray 1e-8 rad off
+    the peak already changes p by 1e-4). Run in a subprocess so a regression
+    times out instead of stalling the suite."""
+    code = (
+        "import json, sys, numpy as np, tyndall\n"
+        "out = []\n"
+        "for scene in json.loads(sys.argv[1]):\n"
+        "    layers, report = tyndall.render(scene)\n"
+        "    out.append({'inscatter': layers['inscatter'][..., 1].astype(float).tolist(),\n"
+        "                'finite': bool(np.isfinite(layers['inscatter']).all()\n"
+        "                               and np.isfinite(layers['error']).all()),\n"
+        "                'sun_disc_rel': report['error']['sun_disc_rel'],\n"
+        "                'plan': report['plan']})\n"
+        "print(json.dumps(out))\n"
+    )
+    needle = copy.deepcopy(NEEDLE_MEDIA[medium])
+    isotropic = copy.deepcopy(needle)
+    _phase_of(isotropic).clear()
+    _phase_of(isotropic)["type"] = "isotropic"
+    scenes = [needle_lobe_sun_scene(needle, 0.526), needle_lobe_sun_scene(isotropic, 0.526)]
+    run = subprocess.run([sys.executable, "-c", code, json.dumps(scenes)], capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0, run.stderr[-2000:]
+    disc, flat = json.loads(run.stdout)
+    assert disc["finite"] and flat["finite"]
+    plan = json.dumps(disc["plan"], ensure_ascii=False)
+    assert "sun disc (0.526° wide)" in plan and "tabulated at" in plan
+    assert disc["sun_disc_rel"] == pytest.approx(0.25e-3)
+    g = _phase_of(needle)["g"]
+    delta = math.radians(0.526) / 2
+    cap = 4 * math.pi * math.sin(delta / 2) ** 2
+    d0 = (1 - g) ** 2 + 4 * g * math.sin(delta / 2) ** 2
+    averaged = (1 - g * g) / (2 * g) * (1 / (1 - g) - 1 / math.sqrt(d0)) / cap
+    phase = np.array(disc["inscatter"]) / np.array(flat["inscatter"]) / (4 * math.pi)
+    # The table is good to tolerance/4; f32 storage adds ≈ 1e-7.
+    assert phase[7, 12] == pytest.approx(averaged, rel=0.25e-3 + 1e-6)
+    assert np.all(np.isfinite(phase)) and np.all(phase > 0)
+    # Far outside the disc the average is close to the lobe's own tail.
+    assert phase[0, 0] < 1e-2 * averaged

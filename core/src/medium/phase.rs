@@ -96,34 +96,102 @@ impl PhaseFunction {
         }
     }
 
+    /// Phase function value in sr⁻¹ at scattering angle `alpha` (rad, 0 = forward).
+    /// Uses `1 − μ = 2 sin²(α/2)`, so a lobe far narrower than √ε ≈ 1.5e-8 rad
+    /// (HG with g → 1) keeps its digits near the forward peak, where `eval(cos α)`
+    /// would round `1 + g² − 2gμ` away.
+    #[inline]
+    pub fn eval_at_angle(&self, alpha: f64) -> f64 {
+        let s = (0.5 * alpha).sin();
+        let one_minus_mu = (2.0 * s * s).clamp(0.0, 2.0);
+        let mu = 1.0 - one_minus_mu;
+        match *self {
+            PhaseFunction::HenyeyGreenstein { g } => {
+                // 1 + g² − 2gμ = (1 − g)² + 2g(1 − μ), both terms exact in sign.
+                let d = (1.0 - g) * (1.0 - g) + 2.0 * g * one_minus_mu;
+                INV_4PI * (1.0 - g * g) / (d * d.sqrt())
+            }
+            PhaseFunction::CornetteShanks { g } => {
+                let d = (1.0 - g) * (1.0 - g) + 2.0 * g * one_minus_mu;
+                3.0 / (8.0 * PI) * (1.0 - g * g) / (2.0 + g * g) * (1.0 + mu * mu) / (d * d.sqrt())
+            }
+            _ => self.eval(mu),
+        }
+    }
+
     /// Phase function averaged over a uniform disc (spherical cap) of angular
-    /// radius `radius_rad` centred `theta` radians from the view direction:
-    /// what a sun of finite size really contributes, sr⁻¹.
+    /// radius `radius_rad` (rad, 0 < δ ≤ π/2; 0 gives the point value) centred
+    /// `theta` radians (0 … π) from the view direction: what a sun of finite
+    /// size really contributes, sr⁻¹.
     ///
-    /// `p̄(θ) = ∫∫ p(cos α) sin r dr dψ / (2π(1 − cos δ))`, with
-    /// `cos α = cos θ cos r + sin θ sin r cos ψ` (spherical law of cosines),
-    /// integrated adaptively to 1e-10 relative.
+    /// `p̄(θ) = ∫_cap p dΩ / (2π(1 − cos δ))`. The phase function depends only
+    /// on the angle α from the view direction, so the cap is swept in circles
+    /// of radius α about the view direction, not about the disc centre:
+    /// `∫_cap p dΩ = ∫ p(α) · w(α) · sin α dα`, where `w(α)` is the azimuth
+    /// range of the circle that lies in the cap. From the spherical law of
+    /// cosines in haversine form, `hav d = hav(θ − α) + sin θ sin α hav ψ`,
+    /// a point at azimuth ψ is inside when
+    /// `hav ψ ≤ H(α) = sin((δ − θ + α)/2) sin((δ + θ − α)/2) / (sin θ sin α)`
+    /// (the numerator is `hav δ − hav(θ − α)` without the cancellation), so
+    /// `w = 4 asin √H` for 0 < H < 1 and 2π for circles wholly inside.
+    /// One 1-D integral per θ, whatever the lobe: a Henyey–Greenstein lobe of
+    /// width 1 − g ≪ δ is a peak at one end of the α range, which the adaptive
+    /// rule refines towards, where the former 2-D integral about the disc
+    /// centre had to find it in the interior (0.8–1 s per call at g = 0.9999).
+    /// The partial range `|θ − δ| … θ + δ` is mapped by `α = m − h cos t`,
+    /// which removes the square-root ends of `w`. Integrated to 1e-11 relative.
     pub fn disc_average(&self, theta: f64, radius_rad: f64) -> f64 {
         if radius_rad <= 0.0 {
             return self.eval(theta.cos());
         }
-        let (st, ct) = theta.sin_cos();
+        let theta = theta.clamp(0.0, PI);
+        let delta = radius_rad.min(0.5 * PI);
         // Cap solid angle 2π(1 − cos δ), written with sin² so small δ keeps its digits.
-        let cap = 4.0 * PI * (0.5 * radius_rad).sin().powi(2);
-        let outer = crate::numeric::integrate_adaptive(
-            |r: f64| {
-                let (sr, cr) = r.sin_cos();
-                let inner =
-                    crate::numeric::integrate_adaptive(|psi: f64| [self.eval(ct * cr + st * sr * psi.cos())], 0.0, PI, 0.0, 1e-11, 200);
-                [2.0 * inner.value[0] * sr]
-            },
-            0.0,
-            radius_rad,
-            0.0,
-            1e-10,
-            200,
-        );
-        outer.value[0] / cap
+        let cap = 4.0 * PI * (0.5 * delta).sin().powi(2);
+        let full_circles = |a: f64, b: f64| {
+            if b <= a {
+                return 0.0;
+            }
+            crate::numeric::integrate_adaptive(
+                |alpha: f64| [2.0 * PI * self.eval_at_angle(alpha) * alpha.sin()],
+                a,
+                b,
+                0.0,
+                1e-12,
+                2000,
+            )
+            .value[0]
+        };
+        let sin_theta = theta.sin();
+        // Circles about the view direction wholly inside the cap: around α = 0
+        // when the view direction is in the disc, around α = π when its opposite is.
+        let mut total = full_circles(0.0, delta - theta) + full_circles(2.0 * PI - theta - delta, PI);
+        let lo = (theta - delta).abs();
+        let hi = (theta + delta).min(2.0 * PI - theta - delta);
+        if hi > lo && sin_theta > 0.0 {
+            let (m, h) = (0.5 * (lo + hi), 0.5 * (hi - lo));
+            let partial = crate::numeric::integrate_adaptive(
+                |t: f64| {
+                    let (st, ct) = t.sin_cos();
+                    let alpha = (m - h * ct).clamp(lo, hi);
+                    let sin_alpha = alpha.sin();
+                    if sin_alpha <= 0.0 {
+                        return [0.0];
+                    }
+                    let num = (0.5 * (delta - theta + alpha)).sin() * (0.5 * (delta + theta - alpha)).sin();
+                    let hav_psi = (num / (sin_theta * sin_alpha)).clamp(0.0, 1.0);
+                    let w = 4.0 * hav_psi.sqrt().asin();
+                    [self.eval_at_angle(alpha) * w * sin_alpha * h * st]
+                },
+                0.0,
+                PI,
+                0.0,
+                1e-12,
+                2000,
+            );
+            total += partial.value[0];
+        }
+        total / cap
     }
 
     /// Largest relative error, over all scattering angles, of treating a sun
@@ -165,70 +233,117 @@ impl PhaseFunction {
 
 /// A phase function averaged over a sun disc, tabulated against
 /// `u = √(1 − μ)` (μ = cos θ, θ the angle between the view direction and the
-/// sun's centre) on a uniform grid: `u ≈ θ/√2` near the sun, so the grid is
-/// uniform in angle where the disc matters, and a lookup costs one square
-/// root and one linear interpolation. Used instead of the point evaluation
-/// when treating the sun as a point would exceed the tolerance.
+/// sun's centre): `u ≈ θ/√2` near the sun, so the table is fine in angle where
+/// the disc matters. Used instead of the point evaluation when treating the
+/// sun as a point would exceed the tolerance.
 ///
-/// The grid is doubled (from 256 nodes up to 2¹⁸) until linear interpolation
-/// matches [`PhaseFunction::disc_average`] at every cell midpoint to
-/// `rel_tol`, so the table's own error is bounded by `rel_tol`.
+/// The nodes are placed adaptively: starting from 256 uniform cells plus the
+/// disc's rim, a cell is halved until linear interpolation matches
+/// [`PhaseFunction::disc_average`] at its midpoint to `rel_tol`. A lobe much
+/// narrower than the disc (HG g = 0.9999: width 1e-4 rad against a 4.6e-3 rad
+/// radius) turns the average into a plateau with a steep rim; the nodes crowd
+/// there instead of refining the whole range (a uniform grid would need about
+/// 10⁶ nodes). Cells are not split below [`DiscPhase::MIN_CELL`] in u nor past
+/// [`DiscPhase::MAX_NODES`]; where that stops a cell short of `rel_tol`, its
+/// midpoint mismatch is kept in
+/// [`DiscPhase::table_error`], which the render reports.
+/// A lookup is one square root, a bucket index and a short binary search.
 #[derive(Debug, Clone, PartialEq)]
 pub struct DiscPhase {
     /// The phase function.
     pub phase: PhaseFunction,
     /// Angular radius of the disc, rad.
     pub radius: f64,
+    /// Node positions in u, increasing from 0 to √2.
+    nodes: Vec<f64>,
     values: Vec<f64>,
-    scale: f64,
+    /// `bucket_start[b]`: the last node at or before `b / bucket_scale`.
+    bucket_start: Vec<u32>,
+    bucket_scale: f64,
+    table_error: f64,
 }
 
 const U_MAX: f64 = std::f64::consts::SQRT_2;
 
 impl DiscPhase {
-    /// Tabulates `phase` averaged over a disc of angular radius `radius` (rad).
+    /// Narrowest cell in u (≈ 1.4e-9 rad in angle near the sun).
+    pub const MIN_CELL: f64 = 1e-9;
+    /// Node budget: past it every remaining cell is accepted as it is and its
+    /// mismatch goes into [`DiscPhase::table_error`].
+    pub const MAX_NODES: usize = 1 << 18;
+
+    /// Tabulates `phase` averaged over a disc of angular radius `radius` (rad)
+    /// to `rel_tol` relative (see [`DiscPhase::table_error`] for what was achieved).
     pub fn build(phase: PhaseFunction, radius: f64, rel_tol: f64) -> DiscPhase {
-        let f = |u: f64| {
-            let mu = 1.0 - u * u;
-            phase.disc_average(mu.clamp(-1.0, 1.0).acos(), radius)
-        };
-        let mut n = 256usize;
-        let mut values: Vec<f64> = (0..=n).map(|i| f(U_MAX * i as f64 / n as f64)).collect();
-        loop {
-            let h = U_MAX / n as f64;
-            let mids: Vec<f64> = (0..n).map(|i| f((i as f64 + 0.5) * h)).collect();
-            let ok = mids
-                .iter()
-                .enumerate()
-                .all(|(i, m)| (0.5 * (values[i] + values[i + 1]) - m).abs() <= rel_tol * m.abs());
-            // Interleave: the midpoints are the new nodes of the doubled grid.
-            let mut finer = Vec::with_capacity(2 * n + 1);
-            for i in 0..n {
-                finer.push(values[i]);
-                finer.push(mids[i]);
-            }
-            finer.push(values[n]);
-            values = finer;
-            n *= 2;
-            if ok || n >= 1 << 18 {
-                break;
+        // θ = 2 asin(u/√2) keeps the digits of small angles that acos(1 − u²) loses.
+        let f = |u: f64| phase.disc_average(2.0 * (u / U_MAX).clamp(0.0, 1.0).asin(), radius);
+        let rim = U_MAX * (0.5 * radius.clamp(0.0, 0.5 * PI)).sin();
+        let mut starts: Vec<f64> = (0..=256).map(|i| U_MAX * i as f64 / 256.0).collect();
+        starts.push(rim);
+        starts.sort_by(f64::total_cmp);
+        starts.dedup();
+        let mut nodes = vec![starts[0]];
+        let mut values = vec![f(starts[0])];
+        let mut table_error = 0.0f64;
+        // Depth-first refinement with an explicit stack, right half pushed first.
+        for w in starts.windows(2) {
+            let (u1, f1) = (w[1], f(w[1]));
+            let mut stack = vec![(u1, f1)];
+            while let Some(&(ub, fb)) = stack.last() {
+                let (ua, fa) = (*nodes.last().unwrap(), *values.last().unwrap());
+                let um = 0.5 * (ua + ub);
+                let fm = f(um);
+                let mismatch = (0.5 * (fa + fb) - fm).abs() / fm.abs().max(f64::MIN_POSITIVE);
+                if mismatch <= rel_tol || ub - ua <= Self::MIN_CELL || nodes.len() >= Self::MAX_NODES {
+                    if mismatch > rel_tol {
+                        table_error = table_error.max(mismatch);
+                    }
+                    // Accept the cell; its midpoint becomes a node too.
+                    nodes.extend([um, ub]);
+                    values.extend([fm, fb]);
+                    stack.pop();
+                } else {
+                    stack.push((um, fm));
+                }
             }
         }
+        let buckets = nodes.len().next_power_of_two();
+        let bucket_scale = buckets as f64 / U_MAX;
+        let bucket_start = (0..=buckets)
+            .map(|b| {
+                let u = b as f64 / bucket_scale;
+                (nodes.partition_point(|x| *x <= u).max(1) - 1).min(nodes.len() - 2) as u32
+            })
+            .collect();
         DiscPhase {
             phase,
             radius,
-            scale: n as f64 / U_MAX,
+            nodes,
             values,
+            bucket_start,
+            bucket_scale,
+            table_error: table_error.max(rel_tol),
         }
     }
 
     /// Disc-averaged phase value, sr⁻¹, for `mu = cos θ` (view direction · direction to the sun's centre).
     #[inline]
     pub fn eval(&self, mu: f64) -> f64 {
-        let x = (1.0 - mu.clamp(-1.0, 1.0)).sqrt() * self.scale;
-        let i = (x as usize).min(self.values.len() - 2);
-        let t = x - i as f64;
+        let u = (1.0 - mu.clamp(-1.0, 1.0)).sqrt();
+        let b = ((u * self.bucket_scale) as usize).min(self.bucket_start.len() - 2);
+        let (lo, hi) = (self.bucket_start[b] as usize, self.bucket_start[b + 1] as usize);
+        // The cell [nodes[i], nodes[i+1]] holding u lies between the two bucket starts.
+        let i = lo + self.nodes[lo..=hi].partition_point(|x| *x <= u).max(1) - 1;
+        let i = i.min(self.nodes.len() - 2);
+        let (u0, u1) = (self.nodes[i], self.nodes[i + 1]);
+        let t = ((u - u0) / (u1 - u0)).clamp(0.0, 1.0);
         self.values[i] + t * (self.values[i + 1] - self.values[i])
+    }
+
+    /// Relative accuracy the table reached: `rel_tol`, or more where a cell
+    /// reached [`DiscPhase::MIN_CELL`] before meeting it.
+    pub fn table_error(&self) -> f64 {
+        self.table_error
     }
 
     /// Number of table nodes.
@@ -315,6 +430,108 @@ mod tests {
         assert!(PhaseFunction::HenyeyGreenstein { g: 0.995 }.point_sun_error(d).0 > 0.05);
     }
 
+    /// The former 2-D form: `∫₀^δ ∫₀^{2π} p(cos α) dψ sin r dr` about the
+    /// disc centre, `cos α = cos θ cos r + sin θ sin r cos ψ`; independent of
+    /// the circles-about-the-view-direction form it checks.
+    fn disc_average_about_the_centre(p: PhaseFunction, theta: f64, delta: f64) -> f64 {
+        let (st, ct) = theta.sin_cos();
+        let cap = 4.0 * PI * (0.5 * delta).sin().powi(2);
+        let outer = integrate_adaptive(
+            |r: f64| {
+                let (sr, cr) = r.sin_cos();
+                let inner = integrate_adaptive(|psi: f64| [p.eval(ct * cr + st * sr * psi.cos())], 0.0, PI, 0.0, 1e-12, 400);
+                [2.0 * inner.value[0] * sr]
+            },
+            0.0,
+            delta,
+            0.0,
+            1e-11,
+            400,
+        );
+        outer.value[0] / cap
+    }
+
+    #[test]
+    fn disc_average_matches_the_integral_about_the_disc_centre() {
+        let phases = [
+            PhaseFunction::Isotropic,
+            PhaseFunction::Rayleigh,
+            PhaseFunction::HenyeyGreenstein { g: 0.76 },
+            PhaseFunction::HenyeyGreenstein { g: 0.99 },
+            PhaseFunction::HenyeyGreenstein { g: -0.9 },
+            PhaseFunction::CornetteShanks { g: 0.76 },
+            PhaseFunction::NishitaMurky,
+        ];
+        for delta in [0.5 * 0.526f64.to_radians(), 0.3, 1.2, 0.5 * PI] {
+            for theta in [0.0, 0.1 * delta, 0.5 * delta, delta, 1.5 * delta, 1.0, 2.0, PI - 0.5 * delta, PI] {
+                for p in phases {
+                    let a = p.disc_average(theta, delta);
+                    let b = disc_average_about_the_centre(p, theta, delta);
+                    assert!((a - b).abs() <= 1e-9 * b, "{p:?} δ={delta} θ={theta}: {a} vs {b}");
+                }
+            }
+        }
+    }
+
+    /// At θ = 0 the cap average of HG has a closed form:
+    /// 2π∫_{cos δ}^1 p dμ = (1 − g²)/(2g) · (1/(1 − g) − 1/√(1 + g² − 2g cos δ)).
+    #[test]
+    fn disc_average_of_a_needle_lobe_matches_the_closed_form() {
+        let delta = 0.5 * 0.526f64.to_radians();
+        let cap = 4.0 * PI * (0.5 * delta).sin().powi(2);
+        for g in [0.9, 0.999, 0.9999, 0.999999] {
+            let p = PhaseFunction::HenyeyGreenstein { g };
+            let d0 = (1.0 - g) * (1.0 - g) + 4.0 * g * (0.5 * delta).sin().powi(2);
+            let exact = (1.0 - g * g) / (2.0 * g) * (1.0 / (1.0 - g) - 1.0 / d0.sqrt()) / cap;
+            let got = p.disc_average(0.0, delta);
+            assert!((got - exact).abs() <= 1e-10 * exact, "g={g}: {got} vs {exact}");
+        }
+    }
+
+    /// Averaging over a cap preserves the integral over the sphere:
+    /// 2π∫₀^π p̄(θ) sin θ dθ = 1, however narrow the lobe.
+    #[test]
+    fn disc_average_of_a_needle_lobe_keeps_the_sphere_integral() {
+        let delta = 0.5 * 0.526f64.to_radians();
+        for g in [0.9999, -0.9999] {
+            let p = PhaseFunction::HenyeyGreenstein { g };
+            let f = |theta: f64| [2.0 * PI * p.disc_average(theta, delta) * theta.sin()];
+            let mut total = 0.0;
+            for (a, b) in [
+                (0.0, delta),
+                (delta, 2.0 * delta),
+                (2.0 * delta, PI - 2.0 * delta),
+                (PI - 2.0 * delta, PI - delta),
+                (PI - delta, PI),
+            ] {
+                total += integrate_adaptive(f, a, b, 0.0, 1e-10, 400).value[0];
+            }
+            assert!((total - 1.0).abs() < 1e-8, "g={g}: {total}");
+        }
+    }
+
+    #[test]
+    fn disc_phase_table_of_a_needle_lobe_stays_small_and_within_tolerance() {
+        let r = 0.5 * 0.526f64.to_radians();
+        for g in [0.9999, -0.9999] {
+            let p = PhaseFunction::HenyeyGreenstein { g };
+            let tol = 2.5e-4;
+            let t = DiscPhase::build(p, r, tol);
+            assert_eq!(t.table_error(), tol);
+            assert!(t.len() < 20_000, "g={g}: {} nodes", t.len());
+            // Dense around the rim, where the plateau falls off, and across the sphere.
+            let rim: Vec<f64> = (0..400).map(|i| r * (0.9 + 0.2 * i as f64 / 399.0)).collect();
+            let spread: Vec<f64> = (0..400).map(|i| PI * (i as f64 / 399.0).powi(3)).collect();
+            for theta in rim.into_iter().chain(spread) {
+                let direct = p.disc_average(theta, r);
+                let tab = t.eval(theta.cos());
+                // The lookup's μ = cos θ carries ≈ 1e-16 absolute, i.e. a shift of
+                // ≈ 1e-16/θ in angle; near θ = 0 the plateau is flat, so this is small.
+                assert!((tab - direct).abs() <= 2.0 * tol * direct, "g={g} θ={theta}: {tab} vs {direct}");
+            }
+        }
+    }
+
     #[test]
     fn disc_phase_table_matches_direct_averages() {
         let p = PhaseFunction::HenyeyGreenstein { g: 0.9 };
@@ -327,7 +544,7 @@ mod tests {
             let tab = t.eval(theta.cos());
             assert!((tab - direct).abs() <= 2.0 * tol * direct, "θ={theta}: {tab} vs {direct}");
         }
-        assert!(t.len() <= (1 << 16) + 1, "{} nodes", t.len());
+        assert!(t.len() <= 5000, "{} nodes", t.len());
     }
 
     #[test]

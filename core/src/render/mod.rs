@@ -2924,11 +2924,11 @@ fn sun_disc_effect<const C: usize>(scene: &Scene, media: &[PreparedMedium<C>], l
                         "as a point the sun's in-scatter would be off by up to {r:.2e} ({:.3}° from the sun), above the tolerance: the phase function averaged over the disc is tabulated at {} angles to {:.1e} relative",
                         theta.to_degrees(),
                         t.len(),
-                        0.25 * tol
+                        t.table_error()
                     ),
                 );
+                residual = residual.max(t.table_error());
                 tables.push(t);
-                residual = residual.max(0.25 * tol);
             } else if r >= residual {
                 (residual, at, which) = (r, theta, p.describe());
             }
