@@ -10,6 +10,9 @@ use pyo3::exceptions::{PyRuntimeError, PyValueError};
 use pyo3::prelude::*;
 use pyo3::types::{PyDict, PyList};
 use std::path::PathBuf;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Condvar, Mutex};
+use std::time::Duration;
 use tyndall_core::scene::LayerKind;
 use tyndall_core::{RenderError, Scene, SceneError};
 
@@ -42,6 +45,49 @@ fn render_err(py: Python<'_>, e: RenderError) -> PyErr {
         ),
         other => RenderFailed::new_err(other.to_string()),
     }
+}
+
+/// Runs `work` on a helper thread with the interpreter released, and checks
+/// for Python signals every 50 ms meanwhile. `py.detach` alone would hold the
+/// calling thread inside Rust, so Ctrl-C (or a `signal.alarm` handler) would
+/// wait for the whole render. When a handler raises, `cancel` is set, the
+/// work winds down (about one ray's time) and the handler's exception
+/// (`KeyboardInterrupt`, …) is raised in place of the result.
+fn interruptible<T: Send>(py: Python<'_>, work: impl FnOnce(&AtomicBool) -> T + Send) -> PyResult<T> {
+    let cancel = AtomicBool::new(false);
+    let finished = (Mutex::new(false), Condvar::new());
+    std::thread::scope(|scope| {
+        let worker = scope.spawn(|| {
+            let out = work(&cancel);
+            let (lock, signal) = &finished;
+            *lock.lock().unwrap_or_else(|e| e.into_inner()) = true;
+            signal.notify_all();
+            out
+        });
+        let join = |worker: std::thread::ScopedJoinHandle<'_, T>| {
+            worker
+                .join()
+                .map_err(|_| RenderFailed::new_err("the render thread panicked (a bug: please report the scene)"))
+        };
+        loop {
+            let done = py.detach(|| {
+                let (lock, signal) = &finished;
+                let guard = lock.lock().unwrap_or_else(|e| e.into_inner());
+                let (guard, _) = signal
+                    .wait_timeout_while(guard, Duration::from_millis(50), |done| !*done)
+                    .unwrap_or_else(|e| e.into_inner());
+                *guard
+            });
+            if done {
+                return join(worker);
+            }
+            if let Err(raised) = py.check_signals() {
+                cancel.store(true, Ordering::Relaxed);
+                let _ = py.detach(|| join(worker));
+                return Err(raised);
+            }
+        }
+    })
 }
 
 /// A validated scene. Create with `load_scene(path)` or `scene_from_json(text)`.
@@ -158,7 +204,8 @@ fn render<'py>(
     layers: Option<Vec<String>>,
 ) -> PyResult<(Bound<'py, PyDict>, String)> {
     let s = with_overrides(&scene.inner, tolerance, threads, layers)?;
-    let (mut images, mut report) = py.detach(|| tyndall_core::render(&s, None)).map_err(|e| render_err(py, e))?;
+    let (mut images, mut report) =
+        interruptible(py, |cancel| tyndall_core::render_cancellable(&s, None, Some(cancel)))?.map_err(|e| render_err(py, e))?;
     report.resolution = [images.width, images.height];
     let (w, h) = (images.width, images.height);
     let out = PyDict::new(py);
@@ -214,7 +261,9 @@ fn render_to_files(
     threads: Option<usize>,
 ) -> PyResult<String> {
     let s = with_overrides(&scene.inner, tolerance, threads, None)?;
-    let r = py.detach(|| tyndall_cli::render_to_files(&s, &out, report.as_deref(), preview.as_deref(), false));
+    let r = interruptible(py, |cancel| {
+        tyndall_cli::render_to_files_cancellable(&s, &out, report.as_deref(), preview.as_deref(), false, Some(cancel))
+    })?;
     match r {
         Ok(rep) => Ok(rep.to_json()),
         Err(tyndall_cli::CliError::Scene(e)) => Err(scene_err(py, e)),

@@ -478,6 +478,19 @@ pub fn render_to_files(
     preview: Option<&Path>,
     progress: bool,
 ) -> Result<Report, CliError> {
+    render_to_files_cancellable(scene, out, report_path, preview, progress, None)
+}
+
+/// [`render_to_files`] that stops, writing nothing, once another thread sets
+/// `cancel` (see [`tyndall_core::render_cancellable`]).
+pub fn render_to_files_cancellable(
+    scene: &Scene,
+    out: &Path,
+    report_path: Option<&Path>,
+    preview: Option<&Path>,
+    progress: bool,
+    cancel: Option<&std::sync::atomic::AtomicBool>,
+) -> Result<Report, CliError> {
     let bar = if progress { Some(progress_bar()) } else { None };
     let cb = |done: usize, total: usize| {
         if let Some(b) = &bar {
@@ -485,7 +498,7 @@ pub fn render_to_files(
             b.set_position(done as u64);
         }
     };
-    let (images, mut report) = tyndall_core::render(scene, Some(&cb))?;
+    let (images, mut report) = tyndall_core::render_cancellable(scene, Some(&cb), cancel)?;
     if let Some(b) = &bar {
         b.finish_and_clear();
     }

@@ -218,6 +218,9 @@ pub(crate) struct AdaptiveFilterJob<'a> {
     pub window_scale: &'a (dyn Fn(usize) -> f64 + Sync),
     /// Images of point lights, pixel coordinates (pixel `i` spans `[i, i+1)`).
     pub light_images: &'a [(f64, f64)],
+    /// Set by another thread to stop: tiles not yet started are skipped
+    /// (the caller then discards the result).
+    pub cancel: Option<&'a std::sync::atomic::AtomicBool>,
 }
 
 /// Totals of a [`filter_adaptive`] run.
@@ -923,6 +926,9 @@ pub(crate) fn filter_adaptive<S: FilterSample>(
                 scratch: Vec::with_capacity(4096),
             },
             |lattice, pixels| {
+                if job.cancel.is_some_and(|c| c.load(std::sync::atomic::Ordering::Relaxed)) {
+                    return (Vec::new(), AdaptiveFilterStats::default());
+                }
                 lattice.points.clear();
                 lattice.samples.clear();
                 lattice.cells.clear();
@@ -1023,6 +1029,7 @@ mod adaptive_tests {
         let (w, h) = TOY_SIZE;
         let scale_of = |i: usize| toy_window_max(f, i);
         let job = AdaptiveFilterJob {
+            cancel: None,
             filter: PixelFilter::default(),
             width: w,
             height: h,
