@@ -111,7 +111,7 @@ class SceneData:
     meshes: list[MeshData]
     unit_scale: float = 1.0  # metres per Blender unit (Scene.unit_settings.scale_length)
     skipped: list[str] = field(default_factory=list)  # "<object>: <reason>" gathered but left out
-    tolerance: float = 1e-4
+    tolerance: float = 1e-3  # as the panel's default (props.py)
     threads: int = 0
     layers: tuple[str, ...] = DEFAULT_LAYERS
     include_sun: bool = False  # sun lamps light the medium (Cycles extinguishes them in a world volume)
