@@ -58,11 +58,18 @@ fn interruptible<T: Send>(py: Python<'_>, work: impl FnOnce(&AtomicBool) -> T + 
     let finished = (Mutex::new(false), Condvar::new());
     std::thread::scope(|scope| {
         let worker = scope.spawn(|| {
-            let out = work(&cancel);
-            let (lock, signal) = &finished;
-            *lock.lock().unwrap_or_else(|e| e.into_inner()) = true;
-            signal.notify_all();
-            out
+            // Set on the way out, by return or by panic (a panic must not
+            // leave the caller waiting for a flag nobody sets).
+            struct Finished<'a>(&'a (Mutex<bool>, Condvar));
+            impl Drop for Finished<'_> {
+                fn drop(&mut self) {
+                    let (lock, signal) = self.0;
+                    *lock.lock().unwrap_or_else(|e| e.into_inner()) = true;
+                    signal.notify_all();
+                }
+            }
+            let _finished = Finished(&finished);
+            work(&cancel)
         });
         let join = |worker: std::thread::ScopedJoinHandle<'_, T>| {
             worker

@@ -481,8 +481,10 @@ pub fn render_to_files(
     render_to_files_cancellable(scene, out, report_path, preview, progress, None)
 }
 
-/// [`render_to_files`] that stops, writing nothing, once another thread sets
-/// `cancel` (see [`tyndall_core::render_cancellable`]).
+/// [`render_to_files`] that stops once another thread sets `cancel` (see
+/// [`tyndall_core::render_cancellable`]): nothing is written if it is set
+/// before the images are complete; set while writing, the files not yet
+/// started are not written (each file is written atomically, so none is torn).
 pub fn render_to_files_cancellable(
     scene: &Scene,
     out: &Path,
@@ -499,6 +501,11 @@ pub fn render_to_files_cancellable(
         }
     };
     let (images, mut report) = tyndall_core::render_cancellable(scene, Some(&cb), cancel)?;
+    // A cancel that came after the last ray: still nothing is written.
+    let cancelled = || cancel.is_some_and(|c| c.load(std::sync::atomic::Ordering::Relaxed));
+    if cancelled() {
+        return Err(tyndall_core::RenderError::Cancelled.into());
+    }
     if let Some(b) = &bar {
         b.finish_and_clear();
     }
@@ -513,6 +520,9 @@ pub fn render_to_files_cancellable(
     io::write_layers_exr(out, images.width, images.height, &images.exr_layers())?;
     let t = report.time("write_exr", t);
     if let Some(p) = preview {
+        if cancelled() {
+            return Err(tyndall_core::RenderError::Cancelled.into());
+        }
         let rgb = preview_image(&images);
         let stops = io::auto_exposure(&rgb);
         let bad = io::write_png_preview(p, images.width, images.height, &rgb, stops)?;
@@ -522,6 +532,9 @@ pub fn render_to_files_cancellable(
         report.time("write_preview", t);
     }
     if let Some(rp) = report_path {
+        if cancelled() {
+            return Err(tyndall_core::RenderError::Cancelled.into());
+        }
         write_atomic(rp, report.to_json().as_bytes())?;
     }
     Ok(report)

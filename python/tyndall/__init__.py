@@ -153,7 +153,8 @@ def render_to_files(
 ) -> dict[str, Any]:
     """Render and write a multi-layer EXR to ``out`` (atomically), the report JSON and a PNG preview if asked.
 
-    Interruptible as :func:`render`; an interrupted render writes no file.
+    Interruptible as :func:`render`: interrupted before its images are complete it writes
+    no file; while writing, only the files already complete remain (each is written atomically).
     """
     tolerance, threads, _ = _checked_overrides(tolerance, threads, None)
     report_json = _render_to_files(

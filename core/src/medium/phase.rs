@@ -66,11 +66,11 @@ impl PhaseFunction {
             PhaseFunction::Rayleigh => 3.0 / (16.0 * PI) * (1.0 + mu * mu),
             PhaseFunction::HenyeyGreenstein { g } => {
                 let d = 1.0 + g * g - 2.0 * g * mu;
-                INV_4PI * (1.0 - g * g) / (d * d.sqrt())
+                INV_4PI * ((1.0 - g) * (1.0 + g)) / (d * d.sqrt())
             }
             PhaseFunction::CornetteShanks { g } => {
                 let d = 1.0 + g * g - 2.0 * g * mu;
-                3.0 / (8.0 * PI) * (1.0 - g * g) / (2.0 + g * g) * (1.0 + mu * mu) / (d * d.sqrt())
+                3.0 / (8.0 * PI) * ((1.0 - g) * (1.0 + g)) / (2.0 + g * g) * (1.0 + mu * mu) / (d * d.sqrt())
             }
             PhaseFunction::NishitaHazy => {
                 let c = 0.5 * (1.0 + mu);
@@ -97,23 +97,33 @@ impl PhaseFunction {
     }
 
     /// Phase function value in sr⁻¹ at scattering angle `alpha` (rad, 0 = forward).
-    /// Uses `1 − μ = 2 sin²(α/2)`, so a lobe far narrower than √ε ≈ 1.5e-8 rad
-    /// (HG with g → 1) keeps its digits near the forward peak, where `eval(cos α)`
-    /// would round `1 + g² − 2gμ` away.
+    /// Uses `1 − μ = 2 sin²(α/2)` (and `1 + μ = 2 cos²(α/2)`), so a lobe far
+    /// narrower than √ε ≈ 1.5e-8 rad (HG with |g| → 1) keeps its digits near
+    /// its peak, where `eval(cos α)` would round `1 + g² − 2gμ` away.
     #[inline]
     pub fn eval_at_angle(&self, alpha: f64) -> f64 {
         let s = (0.5 * alpha).sin();
         let one_minus_mu = (2.0 * s * s).clamp(0.0, 2.0);
         let mu = 1.0 - one_minus_mu;
+        // 1 + g² − 2gμ as a sum of two non-negative terms: (1 − g)² + 2g(1 − μ)
+        // for g ≥ 0 (forward lobe), (1 + g)² + 2|g|(1 + μ) for g < 0 (backward
+        // lobe, 1 + μ = 2cos²(α/2)), so neither cancels at its peak.
+        let d = |g: f64| {
+            if g >= 0.0 {
+                (1.0 - g) * (1.0 - g) + 2.0 * g * one_minus_mu
+            } else {
+                let c = (0.5 * alpha).cos();
+                (1.0 + g) * (1.0 + g) - 4.0 * g * c * c
+            }
+        };
         match *self {
             PhaseFunction::HenyeyGreenstein { g } => {
-                // 1 + g² − 2gμ = (1 − g)² + 2g(1 − μ), both terms exact in sign.
-                let d = (1.0 - g) * (1.0 - g) + 2.0 * g * one_minus_mu;
-                INV_4PI * (1.0 - g * g) / (d * d.sqrt())
+                let d = d(g);
+                INV_4PI * ((1.0 - g) * (1.0 + g)) / (d * d.sqrt())
             }
             PhaseFunction::CornetteShanks { g } => {
-                let d = (1.0 - g) * (1.0 - g) + 2.0 * g * one_minus_mu;
-                3.0 / (8.0 * PI) * (1.0 - g * g) / (2.0 + g * g) * (1.0 + mu * mu) / (d * d.sqrt())
+                let d = d(g);
+                3.0 / (8.0 * PI) * ((1.0 - g) * (1.0 + g)) / (2.0 + g * g) * (1.0 + mu * mu) / (d * d.sqrt())
             }
             _ => self.eval(mu),
         }
@@ -139,7 +149,7 @@ impl PhaseFunction {
     /// rule refines towards, where the former 2-D integral about the disc
     /// centre had to find it in the interior (0.8–1 s per call at g = 0.9999).
     /// The partial range `|θ − δ| … θ + δ` is mapped by `α = m − h cos t`,
-    /// which removes the square-root ends of `w`. Integrated to 1e-11 relative.
+    /// which removes the square-root ends of `w`. Integrated to 1e-12 relative.
     pub fn disc_average(&self, theta: f64, radius_rad: f64) -> f64 {
         if radius_rad <= 0.0 {
             return self.eval(theta.cos());
@@ -271,10 +281,16 @@ impl DiscPhase {
     /// Node budget: past it every remaining cell is accepted as it is and its
     /// mismatch goes into [`DiscPhase::table_error`].
     pub const MAX_NODES: usize = 1 << 18;
+    /// Finest relative tolerance a table is built to (a tighter request gets
+    /// this, and [`DiscPhase::table_error`] says so).
+    pub const FINEST_TOLERANCE: f64 = 1e-10;
 
     /// Tabulates `phase` averaged over a disc of angular radius `radius` (rad)
     /// to `rel_tol` relative (see [`DiscPhase::table_error`] for what was achieved).
     pub fn build(phase: PhaseFunction, radius: f64, rel_tol: f64) -> DiscPhase {
+        // The averages are good to ≈ 1e-12; a finer target would only chase
+        // their noise up to the node budget.
+        let rel_tol = rel_tol.max(Self::FINEST_TOLERANCE);
         // θ = 2 asin(u/√2) keeps the digits of small angles that acos(1 − u²) loses.
         let f = |u: f64| phase.disc_average(2.0 * (u / U_MAX).clamp(0.0, 1.0).asin(), radius);
         let rim = U_MAX * (0.5 * radius.clamp(0.0, 0.5 * PI)).sin();
@@ -294,9 +310,11 @@ impl DiscPhase {
                 let um = 0.5 * (ua + ub);
                 let fm = f(um);
                 let mismatch = (0.5 * (fa + fb) - fm).abs() / fm.abs().max(f64::MIN_POSITIVE);
-                if mismatch <= rel_tol || ub - ua <= Self::MIN_CELL || nodes.len() >= Self::MAX_NODES {
-                    if mismatch > rel_tol {
-                        table_error = table_error.max(mismatch);
+                // A NaN mismatch is a failure, and is counted as one (∞).
+                let met = mismatch <= rel_tol;
+                if met || ub - ua <= Self::MIN_CELL || nodes.len() >= Self::MAX_NODES {
+                    if !met {
+                        table_error = table_error.max(if mismatch.is_nan() { f64::INFINITY } else { mismatch });
                     }
                     // Accept the cell; its midpoint becomes a node too.
                     nodes.extend([um, ub]);
@@ -482,9 +500,19 @@ mod tests {
         for g in [0.9, 0.999, 0.9999, 0.999999] {
             let p = PhaseFunction::HenyeyGreenstein { g };
             let d0 = (1.0 - g) * (1.0 - g) + 4.0 * g * (0.5 * delta).sin().powi(2);
-            let exact = (1.0 - g * g) / (2.0 * g) * (1.0 / (1.0 - g) - 1.0 / d0.sqrt()) / cap;
+            let exact = ((1.0 - g) * (1.0 + g)) / (2.0 * g) * (1.0 / (1.0 - g) - 1.0 / d0.sqrt()) / cap;
             let got = p.disc_average(0.0, delta);
             assert!((got - exact).abs() <= 1e-10 * exact, "g={g}: {got} vs {exact}");
+            // A backward lobe averaged about the anti-solar point is the mirror image.
+            let back = PhaseFunction::HenyeyGreenstein { g: -g }.disc_average(PI, delta);
+            assert!((back - exact).abs() <= 1e-10 * exact, "g={}: {back} vs {exact}", -g);
+        }
+        // At its peak a needle lobe is (1 + |g|)/(4π(1 − |g|)²), however narrow.
+        for g in [0.999999999, -0.999999999] {
+            let p = PhaseFunction::HenyeyGreenstein { g };
+            let peak = (1.0 + g.abs()) / (4.0 * PI * (1.0 - g.abs()).powi(2));
+            let got = p.eval_at_angle(if g > 0.0 { 0.0 } else { PI });
+            assert!((got - peak).abs() <= 1e-12 * peak, "g={g}: {got} vs {peak}");
         }
     }
 

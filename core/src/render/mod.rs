@@ -1860,6 +1860,11 @@ fn render_channels<const C: usize, const K: usize>(
                     st: &mut RowStats,
                     s: &mut Sample<K>,
                     buf: &mut Vec<(f64, f64)>| {
+            if cancel.is_some_and(|c| c.load(Ordering::Relaxed)) {
+                // Skipped: code 0 is "no sample" to the pixels that read it.
+                *s = Sample::default();
+                return ([0.0f32; 3], [0.0f32; 3], s.surface, 0);
+            }
             let (x, y) = (col as f64 + 0.5, row as f64 + 0.5);
             // The pixel's own code costs a surface hit and cone tests: only
             // worth it when the six samples agree.
@@ -1886,7 +1891,11 @@ fn render_channels<const C: usize, const K: usize>(
                     sample_into(x, y, s);
                     st.add(s);
                     let code = traced_code(x, y, s);
-                    debug_assert!(own.is_none_or(|o| o.1 == code), "{own:?} vs {code}");
+                    // (A render cancelled since `code_of` traces nothing: its code differs.)
+                    debug_assert!(
+                        own.is_none_or(|o| o.1 == code) || cancel.is_some_and(|c| c.load(Ordering::Relaxed)),
+                        "{own:?} vs {code}"
+                    );
                     (s.l.map(|v| v as f32), s.e.map(|v| v as f32), s.surface, code)
                 }
             }
@@ -2951,7 +2960,10 @@ fn sun_disc_effect<const C: usize>(scene: &Scene, media: &[PreparedMedium<C>], l
         }
         let diameter = angular_diameter_deg.to_radians();
         let mut tables = Vec::new();
+        // The largest effect among the phase functions left as a point, and
+        // the largest error of the tables built.
         let (mut residual, mut at, mut which) = (0.0f64, 0.0, String::new());
+        let mut table_residual = 0.0f64;
         for p in &phases {
             let (r, theta) = p.point_sun_error(diameter);
             if r > tol {
@@ -2965,7 +2977,7 @@ fn sun_disc_effect<const C: usize>(scene: &Scene, media: &[PreparedMedium<C>], l
                         t.table_error()
                     ),
                 );
-                residual = residual.max(t.table_error());
+                table_residual = table_residual.max(t.table_error());
                 tables.push(t);
             } else if r >= residual {
                 (residual, at, which) = (r, theta, p.describe());
@@ -2983,7 +2995,7 @@ fn sun_disc_effect<const C: usize>(scene: &Scene, media: &[PreparedMedium<C>], l
         if !tables.is_empty() {
             lights.suns[sun_index].disc = std::sync::Arc::new(tables);
         }
-        worst = worst.max(residual);
+        worst = worst.max(residual).max(table_residual);
     }
     worst
 }
