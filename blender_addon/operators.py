@@ -4,9 +4,9 @@
 :class:`~.core.jobs.Job`: with INVOKE_DEFAULT (the UI) in a background thread polled by a
 modal timer (progress in the status bar, Esc cancels), with EXEC_DEFAULT to completion
 before returning. Only the main thread touches bpy: gathering happens before the job
-starts, committing files and applying results after it is done. The Rust render cannot
-be interrupted: Esc stops waiting, the render finishes in the background and its staged
-files are deleted.
+starts, committing files and applying results after it is done. Esc stops waiting and
+sets the job's stop event: the volumetrics render stops within about a view ray's time
+(the sky, well under a second, runs on), and the staged files are deleted.
 """
 
 from __future__ import annotations
@@ -140,7 +140,7 @@ class _JobOperator:
         if event.type == "ESC" and event.value == "PRESS":
             job.cancel()
             self._end_modal(context)
-            self.report({"WARNING"}, f"{self.job_label} cancelled (the render finishes in the background; discarded)")
+            self.report({"WARNING"}, f"{self.job_label} cancelled (stopped; nothing is written)")
             return {"CANCELLED"}
         if event.type != "TIMER":
             return {"PASS_THROUGH"}
@@ -172,7 +172,8 @@ class TYNDALL_OT_compute_volumetrics(_JobOperator, bpy.types.Operator):
         apply_results = context.scene.tyndall.apply_results
 
         def work(progress: Any) -> dict[str, Any]:
-            return tasks.volumetrics_work(built, staging, progress)
+            # `job` is bound below, before the work can run: Esc stops the render itself.
+            return tasks.volumetrics_work(built, staging, progress, stop=job.stop_requested)
 
         def finish(ctx: bpy.types.Context, res: dict[str, Any]) -> str:
             staging.commit(res["files"])
@@ -186,7 +187,8 @@ class TYNDALL_OT_compute_volumetrics(_JobOperator, bpy.types.Operator):
                 f"; notes: {notes}" if notes else ""
             )
 
-        return Job(work, "volumetrics", on_discard=lambda _r: staging.discard()), finish
+        job = Job(work, "volumetrics", on_discard=lambda _r: staging.discard())
+        return job, finish
 
 
 def sky_params(scene: bpy.types.Scene) -> tuple[tasks.SkyParams, bpy.types.Object | None]:

@@ -219,6 +219,36 @@ def test_job_cancel_discards_the_late_result() -> None:
         job.result()
 
 
+def test_cancelling_a_volumetrics_job_stops_the_render(tmp_path: Path) -> None:
+    """Esc (Job.cancel) sets the job's stop event, which volumetrics_work hands to
+    tyndall.render_to_files: the Rust render itself stops (before, it ran on in the
+    background) and the staging folder is removed."""
+    from blender_addon.core import tasks
+    from blender_addon.core.scene_build import BuiltScene
+
+    scene = json.loads((REPO / "examples" / "stage_four_spots.json").read_text())
+    scene["camera"]["resolution"], scene["output"]["tolerance"] = [1920, 1080], 1e-5  # tens of seconds
+    built = BuiltScene(scene=scene, ies_texts={}, light_names={}, notes=[])
+    staging = Staging(str(tmp_path / "out"))
+
+    def work(progress: Any) -> dict[str, Any]:
+        return tasks.volumetrics_work(built, staging, progress, stop=job.stop_requested)
+
+    job = Job(work, "volumetrics", on_discard=lambda _r: staging.discard())
+    job.start()
+    for _ in range(200):
+        if job.message == "rendering volumetrics":
+            break
+        threading.Event().wait(0.05)
+    assert job.message == "rendering volumetrics"
+    threading.Event().wait(0.3)
+    assert job.cancel() and job.stop_requested.is_set()
+    # Not a timing target: the render would take far longer; its stop takes ≈ 0.2 s.
+    assert job.wait(20), "the worker is still rendering after the cancel"
+    assert job.poll() is JobState.CANCELLED
+    assert not os.path.exists(staging.path)
+
+
 def test_staging_is_all_or_nothing(tmp_path: Path) -> None:
     out = tmp_path / "out"
     st = Staging(str(out))

@@ -543,3 +543,46 @@ def test_a_signal_handler_exception_stops_render_to_files(tmp_path: Path) -> Non
         signal.setitimer(signal.ITIMER_REAL, 0)
         signal.signal(signal.SIGALRM, previous)
     assert list(tmp_path.iterdir()) == []
+
+
+def test_a_cancel_event_stops_a_render_on_another_thread() -> None:
+    """Signals reach only the main thread; a render on a worker thread (as
+    Blender's background job runs it) is stopped by its `cancel` event and
+    raises RenderCancelled, a RenderFailed."""
+    stop = threading.Event()
+    outcome: list[BaseException | None] = []
+
+    def worker() -> None:
+        try:
+            tyndall.render(_slow_stage(), cancel=stop)
+            outcome.append(None)
+        except BaseException as e:  # noqa: BLE001 - inspected below
+            outcome.append(e)
+
+    thread = threading.Thread(target=worker)
+    thread.start()
+    time.sleep(0.5)
+    stop.set()
+    set_at = time.monotonic()
+    thread.join(60)
+    assert not thread.is_alive()
+    # Not a timing target: far above the measured delay, far below the render's time.
+    assert time.monotonic() - set_at < 10.0
+    assert len(outcome) == 1 and isinstance(outcome[0], tyndall.RenderCancelled), outcome
+    assert isinstance(outcome[0], tyndall.RenderFailed)
+
+
+def test_a_set_cancel_event_writes_no_file(tmp_path: Path) -> None:
+    """Set before the call: even a render far shorter than the 50 ms poll is cancelled."""
+    stop = threading.Event()
+    stop.set()
+    tiny = _slow_stage()
+    tiny["camera"]["resolution"], tiny["output"]["tolerance"] = [8, 4], 1e-2
+    with pytest.raises(tyndall.RenderCancelled):
+        tyndall.render_to_files(tiny, tmp_path / "stage.exr", report=tmp_path / "r.json", cancel=stop)
+    assert list(tmp_path.iterdir()) == []
+    with pytest.raises(tyndall.RenderCancelled):
+        tyndall.render(tiny, cancel=stop)
+    stop.clear()
+    layers, _ = tyndall.render(tiny, cancel=stop)
+    assert layers["inscatter"].shape == (4, 8, 3)

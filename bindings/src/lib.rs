@@ -23,6 +23,12 @@ create_exception!(
     "A scene was rejected; `.path` names the field, `.source_name` the file."
 );
 create_exception!(_native, RenderFailed, PyRuntimeError, "A render or an output file failed.");
+create_exception!(
+    _native,
+    RenderCancelled,
+    RenderFailed,
+    "The render was stopped by its `cancel` event; nothing was returned or written."
+);
 
 fn scene_err(py: Python<'_>, e: SceneError) -> PyErr {
     let err = SceneFormatError::new_err(e.to_string());
@@ -43,6 +49,7 @@ fn render_err(py: Python<'_>, e: RenderError) -> PyErr {
                 message,
             },
         ),
+        RenderError::Cancelled => RenderCancelled::new_err("the render was cancelled (its cancel event was set)"),
         other => RenderFailed::new_err(other.to_string()),
     }
 }
@@ -53,8 +60,19 @@ fn render_err(py: Python<'_>, e: RenderError) -> PyErr {
 /// wait for the whole render. When a handler raises, `cancel` is set, the
 /// work winds down (about one ray's time) and the handler's exception
 /// (`KeyboardInterrupt`, …) is raised in place of the result.
-fn interruptible<T: Send>(py: Python<'_>, work: impl FnOnce(&AtomicBool) -> T + Send) -> PyResult<T> {
-    let cancel = AtomicBool::new(false);
+///
+/// `stop`, if given, is any object with an `is_set()` method (a
+/// `threading.Event`), polled as often: signals reach only the main thread,
+/// so this is how a render on another thread (Blender's background job) is
+/// stopped. Once it is set, `cancel` is set and the work's own result
+/// (`RenderError::Cancelled`) is returned.
+fn interruptible<T: Send>(py: Python<'_>, stop: Option<&Bound<'_, PyAny>>, work: impl FnOnce(&AtomicBool) -> T + Send) -> PyResult<T> {
+    let is_set = |event: &Bound<'_, PyAny>| event.call_method0("is_set").and_then(|v| v.is_truthy());
+    // Already set: the work starts cancelled (and returns `Cancelled` at once).
+    let cancel = AtomicBool::new(match stop {
+        Some(event) => is_set(event)?,
+        None => false,
+    });
     let finished = (Mutex::new(false), Condvar::new());
     std::thread::scope(|scope| {
         let worker = scope.spawn(|| {
@@ -88,10 +106,18 @@ fn interruptible<T: Send>(py: Python<'_>, work: impl FnOnce(&AtomicBool) -> T + 
             if done {
                 return join(worker);
             }
-            if let Err(raised) = py.check_signals() {
-                cancel.store(true, Ordering::Relaxed);
-                let _ = py.detach(|| join(worker));
-                return Err(raised);
+            let stop_asked = stop.map_or(Ok(false), is_set);
+            match py.check_signals().and(stop_asked) {
+                Ok(false) => {}
+                Ok(true) => {
+                    cancel.store(true, Ordering::Relaxed);
+                    return py.detach(|| join(worker));
+                }
+                Err(raised) => {
+                    cancel.store(true, Ordering::Relaxed);
+                    let _ = py.detach(|| join(worker));
+                    return Err(raised);
+                }
             }
         }
     })
@@ -202,17 +228,18 @@ fn rgb_array<'py>(py: Python<'py>, px: Vec<[f32; 3]>, w: usize, h: usize) -> PyR
 /// `inscatter.<light name>` and `surface_transmittance.<light name>` per stage light: H×W×3; `depth`: H×W), row 0 at the top, and the report as a JSON string.
 /// The interpreter is released while rendering.
 #[pyfunction]
-#[pyo3(signature = (scene, tolerance = None, threads = None, layers = None))]
+#[pyo3(signature = (scene, tolerance = None, threads = None, layers = None, cancel = None))]
 fn render<'py>(
     py: Python<'py>,
     scene: &PyScene,
     tolerance: Option<f64>,
     threads: Option<usize>,
     layers: Option<Vec<String>>,
+    cancel: Option<Bound<'py, PyAny>>,
 ) -> PyResult<(Bound<'py, PyDict>, String)> {
     let s = with_overrides(&scene.inner, tolerance, threads, layers)?;
-    let (mut images, mut report) =
-        interruptible(py, |cancel| tyndall_core::render_cancellable(&s, None, Some(cancel)))?.map_err(|e| render_err(py, e))?;
+    let (mut images, mut report) = interruptible(py, cancel.as_ref(), |flag| tyndall_core::render_cancellable(&s, None, Some(flag)))?
+        .map_err(|e| render_err(py, e))?;
     report.resolution = [images.width, images.height];
     let (w, h) = (images.width, images.height);
     let out = PyDict::new(py);
@@ -257,7 +284,9 @@ fn render<'py>(
 /// Renders and writes the EXR (and optionally report JSON and PNG preview)
 /// atomically; returns the report as a JSON string.
 #[pyfunction]
-#[pyo3(signature = (scene, out, report = None, preview = None, tolerance = None, threads = None))]
+#[pyo3(signature = (scene, out, report = None, preview = None, tolerance = None, threads = None, cancel = None))]
+// The Python signature's keywords, one argument each (as `sky`).
+#[allow(clippy::too_many_arguments)]
 fn render_to_files(
     py: Python<'_>,
     scene: &PyScene,
@@ -266,10 +295,11 @@ fn render_to_files(
     preview: Option<PathBuf>,
     tolerance: Option<f64>,
     threads: Option<usize>,
+    cancel: Option<Bound<'_, PyAny>>,
 ) -> PyResult<String> {
     let s = with_overrides(&scene.inner, tolerance, threads, None)?;
-    let r = interruptible(py, |cancel| {
-        tyndall_cli::render_to_files_cancellable(&s, &out, report.as_deref(), preview.as_deref(), false, Some(cancel))
+    let r = interruptible(py, cancel.as_ref(), |flag| {
+        tyndall_cli::render_to_files_cancellable(&s, &out, report.as_deref(), preview.as_deref(), false, Some(flag))
     })?;
     match r {
         Ok(rep) => Ok(rep.to_json()),
@@ -384,6 +414,7 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(cli_main, m)?)?;
     m.add("SceneFormatError", m.py().get_type::<SceneFormatError>())?;
     m.add("RenderFailed", m.py().get_type::<RenderFailed>())?;
+    m.add("RenderCancelled", m.py().get_type::<RenderCancelled>())?;
     m.add("__version__", tyndall_core::VERSION)?;
     Ok(())
 }

@@ -12,9 +12,11 @@ States::
                                   |     --work raises--> FAILED
                                   +--cancel()----------> CANCELLED
 
-Cancelling cannot stop the Rust renderer (it has no cancel hook): the worker thread keeps
-running until the render returns, then its result is discarded (``on_discard`` runs in the
-worker, e.g. to delete the staging folder). The caller stops waiting immediately.
+Cancelling sets :attr:`Job.stop_requested`, which the work passes to ``tyndall.render`` /
+``render_to_files`` as ``cancel=``: the Rust renderer then stops within about one view ray's
+time and raises ``tyndall.RenderCancelled``. Work that cannot be stopped (``tyndall.sky``)
+runs on. Either way its result is discarded when the worker returns (``on_discard`` runs in
+the worker, e.g. to delete the staging folder); the caller stops waiting immediately.
 """
 
 from __future__ import annotations
@@ -71,6 +73,8 @@ class Job:
         self._started_at: float | None = None
         self._finished_at: float | None = None
         self._worker_done = threading.Event()
+        #: Set by :meth:`cancel`; the work hands it to ``tyndall.render(..., cancel=)``.
+        self.stop_requested = threading.Event()
 
     # -- state ----------------------------------------------------------------
     @property
@@ -169,7 +173,9 @@ class Job:
         return self.state
 
     def cancel(self) -> bool:
-        """Stop waiting: RUNNING/PENDING → CANCELLED. The result is discarded when the worker ends.
+        """Stop waiting: RUNNING/PENDING → CANCELLED, and ask the work to stop (:attr:`stop_requested`).
+
+        The result is discarded when the worker ends.
 
         Returns False if the job had already finished.
         """
@@ -180,6 +186,7 @@ class Job:
             self._state = JobState.CANCELLED
             if self._finished_at is None:
                 self._finished_at = time.monotonic()
+        self.stop_requested.set()
         if was_pending:
             self._worker_done.set()
         return True

@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import threading
 from dataclasses import dataclass
 from typing import Any
 
@@ -48,15 +49,22 @@ def validate_scene(built: BuiltScene, folder: str) -> None:
     tyndall.as_scene(scene)
 
 
-def volumetrics_work(built: BuiltScene, staging: Staging, progress: ProgressFn) -> dict[str, Any]:
-    """Stage scene.json (+ IES files), render volumetrics.exr and report.json; returns the report."""
+def volumetrics_work(
+    built: BuiltScene, staging: Staging, progress: ProgressFn, stop: threading.Event | None = None
+) -> dict[str, Any]:
+    """Stage scene.json (+ IES files), render volumetrics.exr and report.json; returns the report.
+
+    Once ``stop`` is set the render stops and ``tyndall.RenderCancelled`` is raised.
+    """
     import tyndall
 
     progress(0.05, "writing scene")
     names = stage_scene_files(built, staging)
     scene = resolve_ies_paths(built.scene, staging.path)
     progress(0.1, "rendering volumetrics")
-    report = tyndall.render_to_files(scene, staging.file(VOLUMETRICS_EXR), report=staging.file(REPORT_JSON))
+    report = tyndall.render_to_files(
+        scene, staging.file(VOLUMETRICS_EXR), report=staging.file(REPORT_JSON), cancel=stop
+    )
     report.setdefault("blender", {})["notes"] = list(built.notes)
     report["blender"]["light_layers"] = {k: f"inscatter.{v}" for k, v in built.light_names.items()}
     atomic_write_json(staging.file(REPORT_JSON), report)

@@ -1,6 +1,10 @@
 from os import PathLike
+from typing import Protocol
 
 import numpy as np
+
+class _CancelEvent(Protocol):
+    def is_set(self) -> bool: ...
 
 __version__: str
 
@@ -10,6 +14,7 @@ class SceneFormatError(ValueError):
     detail: str
 
 class RenderFailed(RuntimeError): ...
+class RenderCancelled(RenderFailed): ...
 
 class Scene:
     @property
@@ -19,7 +24,11 @@ class Scene:
 def load_scene(path: str | PathLike[str]) -> Scene: ...
 def scene_from_json(text: str, source_name: str = "<string>") -> Scene: ...
 def render(
-    scene: Scene, tolerance: float | None = None, threads: int | None = None, layers: list[str] | None = None
+    scene: Scene,
+    tolerance: float | None = None,
+    threads: int | None = None,
+    layers: list[str] | None = None,
+    cancel: _CancelEvent | None = None,
 ) -> tuple[dict[str, np.ndarray], str]: ...
 def render_to_files(
     scene: Scene,
@@ -28,6 +37,7 @@ def render_to_files(
     preview: str | None = None,
     tolerance: float | None = None,
     threads: int | None = None,
+    cancel: _CancelEvent | None = None,
 ) -> str: ...
 def scene_schema() -> str: ...
 def cli_main(argv: list[str]) -> int: ...
