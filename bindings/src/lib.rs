@@ -11,7 +11,7 @@ use pyo3::prelude::*;
 use pyo3::types::{PyDict, PyList};
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::{Condvar, Mutex};
+use std::sync::{Arc, Condvar, Mutex};
 use std::time::Duration;
 use tyndall_core::scene::LayerKind;
 use tyndall_core::{RenderError, Scene, SceneError};
@@ -66,61 +66,79 @@ fn render_err(py: Python<'_>, e: RenderError) -> PyErr {
 /// so this is how a render on another thread (Blender's background job) is
 /// stopped. Once it is set, `cancel` is set and the work's own result
 /// (`RenderError::Cancelled`) is returned.
-fn interruptible<T: Send>(py: Python<'_>, stop: Option<&Bound<'_, PyAny>>, work: impl FnOnce(&AtomicBool) -> T + Send) -> PyResult<T> {
+fn interruptible<T: Send + 'static>(
+    py: Python<'_>,
+    stop: Option<&Bound<'_, PyAny>>,
+    work: impl FnOnce(&AtomicBool) -> T + Send + 'static,
+) -> PyResult<T> {
+    /// What the caller and the worker share. Owned by both (an `Arc`, not a
+    /// borrow of the caller's stack): a daemon thread calling in is ended by
+    /// the interpreter at exit while the worker may still run.
+    struct Shared {
+        cancel: AtomicBool,
+        finished: Mutex<bool>,
+        signal: Condvar,
+    }
+    /// Sets `finished` on the way out, by return or by panic (a panic must
+    /// not leave the caller waiting for a flag nobody sets).
+    struct Finished(Arc<Shared>);
+    impl Drop for Finished {
+        fn drop(&mut self) {
+            *self.0.finished.lock().unwrap_or_else(|e| e.into_inner()) = true;
+            self.0.signal.notify_all();
+        }
+    }
     let is_set = |event: &Bound<'_, PyAny>| event.call_method0("is_set").and_then(|v| v.is_truthy());
     // Already set: the work starts cancelled (and returns `Cancelled` at once).
-    let cancel = AtomicBool::new(match stop {
-        Some(event) => is_set(event)?,
-        None => false,
+    let shared = Arc::new(Shared {
+        cancel: AtomicBool::new(match stop {
+            Some(event) => is_set(event)?,
+            None => false,
+        }),
+        finished: Mutex::new(false),
+        signal: Condvar::new(),
     });
-    let finished = (Mutex::new(false), Condvar::new());
-    std::thread::scope(|scope| {
-        let worker = scope.spawn(|| {
-            // Set on the way out, by return or by panic (a panic must not
-            // leave the caller waiting for a flag nobody sets).
-            struct Finished<'a>(&'a (Mutex<bool>, Condvar));
-            impl Drop for Finished<'_> {
-                fn drop(&mut self) {
-                    let (lock, signal) = self.0;
-                    *lock.lock().unwrap_or_else(|e| e.into_inner()) = true;
-                    signal.notify_all();
-                }
-            }
-            let _finished = Finished(&finished);
-            work(&cancel)
+    let worker = {
+        let shared = Arc::clone(&shared);
+        std::thread::Builder::new()
+            .name("tyndall-render".into())
+            .spawn(move || {
+                let _finished = Finished(Arc::clone(&shared));
+                work(&shared.cancel)
+            })
+            .map_err(|e| RenderFailed::new_err(format!("cannot start the render thread: {e}")))?
+    };
+    let join = |worker: std::thread::JoinHandle<T>| {
+        worker
+            .join()
+            .map_err(|_| RenderFailed::new_err("the render thread panicked (a bug: please report the scene)"))
+    };
+    loop {
+        let done = py.detach(|| {
+            let guard = shared.finished.lock().unwrap_or_else(|e| e.into_inner());
+            let (guard, _) = shared
+                .signal
+                .wait_timeout_while(guard, Duration::from_millis(50), |done| !*done)
+                .unwrap_or_else(|e| e.into_inner());
+            *guard
         });
-        let join = |worker: std::thread::ScopedJoinHandle<'_, T>| {
-            worker
-                .join()
-                .map_err(|_| RenderFailed::new_err("the render thread panicked (a bug: please report the scene)"))
-        };
-        loop {
-            let done = py.detach(|| {
-                let (lock, signal) = &finished;
-                let guard = lock.lock().unwrap_or_else(|e| e.into_inner());
-                let (guard, _) = signal
-                    .wait_timeout_while(guard, Duration::from_millis(50), |done| !*done)
-                    .unwrap_or_else(|e| e.into_inner());
-                *guard
-            });
-            if done {
-                return join(worker);
+        if done {
+            return join(worker);
+        }
+        let stop_asked = stop.map_or(Ok(false), is_set);
+        match py.check_signals().and(stop_asked) {
+            Ok(false) => {}
+            Ok(true) => {
+                shared.cancel.store(true, Ordering::Relaxed);
+                return py.detach(|| join(worker));
             }
-            let stop_asked = stop.map_or(Ok(false), is_set);
-            match py.check_signals().and(stop_asked) {
-                Ok(false) => {}
-                Ok(true) => {
-                    cancel.store(true, Ordering::Relaxed);
-                    return py.detach(|| join(worker));
-                }
-                Err(raised) => {
-                    cancel.store(true, Ordering::Relaxed);
-                    let _ = py.detach(|| join(worker));
-                    return Err(raised);
-                }
+            Err(raised) => {
+                shared.cancel.store(true, Ordering::Relaxed);
+                let _ = py.detach(|| join(worker));
+                return Err(raised);
             }
         }
-    })
+    }
 }
 
 /// A validated scene. Create with `load_scene(path)` or `scene_from_json(text)`.
@@ -238,8 +256,10 @@ fn render<'py>(
     cancel: Option<Bound<'py, PyAny>>,
 ) -> PyResult<(Bound<'py, PyDict>, String)> {
     let s = with_overrides(&scene.inner, tolerance, threads, layers)?;
-    let (mut images, mut report) = interruptible(py, cancel.as_ref(), |flag| tyndall_core::render_cancellable(&s, None, Some(flag)))?
-        .map_err(|e| render_err(py, e))?;
+    let (mut images, mut report) = interruptible(py, cancel.as_ref(), move |flag| {
+        tyndall_core::render_cancellable(&s, None, Some(flag))
+    })?
+    .map_err(|e| render_err(py, e))?;
     report.resolution = [images.width, images.height];
     let (w, h) = (images.width, images.height);
     let out = PyDict::new(py);
@@ -298,7 +318,7 @@ fn render_to_files(
     cancel: Option<Bound<'_, PyAny>>,
 ) -> PyResult<String> {
     let s = with_overrides(&scene.inner, tolerance, threads, None)?;
-    let r = interruptible(py, cancel.as_ref(), |flag| {
+    let r = interruptible(py, cancel.as_ref(), move |flag| {
         tyndall_cli::render_to_files_cancellable(&s, &out, report.as_deref(), preview.as_deref(), false, Some(flag))
     })?;
     match r {
