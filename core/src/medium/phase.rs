@@ -491,6 +491,25 @@ mod tests {
         }
     }
 
+    proptest::proptest! {
+        #![proptest_config(proptest::prelude::ProptestConfig { cases: 64, ..Default::default() })]
+        /// Random lobes, disc sizes and angles (wrapping past the anti-solar
+        /// point included) against the 2-D integral about the disc centre.
+        #[test]
+        fn disc_average_matches_the_integral_about_the_centre_for_random_inputs(
+            g in -0.99f64..0.99,
+            cornette_shanks in proptest::bool::ANY,
+            theta in 0.0f64..PI,
+            log_delta in -4.0f64..0.196,
+        ) {
+            let delta = 10f64.powf(log_delta).min(0.5 * PI);
+            let p = if cornette_shanks { PhaseFunction::CornetteShanks { g } } else { PhaseFunction::HenyeyGreenstein { g } };
+            let a = p.disc_average(theta, delta);
+            let b = disc_average_about_the_centre(p, theta, delta);
+            proptest::prop_assert!((a - b).abs() <= 1e-9 * b, "{:?} δ={} θ={}: {} vs {}", p, delta, theta, a, b);
+        }
+    }
+
     /// At θ = 0 the cap average of HG has a closed form:
     /// 2π∫_{cos δ}^1 p dμ = (1 − g²)/(2g) · (1/(1 − g) − 1/√(1 + g² − 2g cos δ)).
     #[test]
