@@ -56,6 +56,20 @@ pub enum PhaseFunction {
 
 const INV_4PI: f64 = 1.0 / (4.0 * PI);
 
+/// Henyey–Greenstein from `d = 1 + g² − 2gμ`, which each caller forms to suit
+/// its input (μ, or the angle for needle lobes). `1 − g²` as `(1 − g)(1 + g)`
+/// is exact near |g| = 1.
+#[inline]
+fn henyey_greenstein(g: f64, d: f64) -> f64 {
+    INV_4PI * ((1.0 - g) * (1.0 + g)) / (d * d.sqrt())
+}
+
+/// Cornette–Shanks from `d = 1 + g² − 2gμ` and μ (see [`henyey_greenstein`]).
+#[inline]
+fn cornette_shanks(g: f64, d: f64, mu: f64) -> f64 {
+    3.0 / (8.0 * PI) * ((1.0 - g) * (1.0 + g)) / (2.0 + g * g) * (1.0 + mu * mu) / (d * d.sqrt())
+}
+
 impl PhaseFunction {
     /// Phase function value in sr⁻¹ for `mu = cos α ∈ [−1, 1]` (clamped).
     #[inline]
@@ -64,14 +78,8 @@ impl PhaseFunction {
         match *self {
             PhaseFunction::Isotropic => INV_4PI,
             PhaseFunction::Rayleigh => 3.0 / (16.0 * PI) * (1.0 + mu * mu),
-            PhaseFunction::HenyeyGreenstein { g } => {
-                let d = 1.0 + g * g - 2.0 * g * mu;
-                INV_4PI * ((1.0 - g) * (1.0 + g)) / (d * d.sqrt())
-            }
-            PhaseFunction::CornetteShanks { g } => {
-                let d = 1.0 + g * g - 2.0 * g * mu;
-                3.0 / (8.0 * PI) * ((1.0 - g) * (1.0 + g)) / (2.0 + g * g) * (1.0 + mu * mu) / (d * d.sqrt())
-            }
+            PhaseFunction::HenyeyGreenstein { g } => henyey_greenstein(g, 1.0 + g * g - 2.0 * g * mu),
+            PhaseFunction::CornetteShanks { g } => cornette_shanks(g, 1.0 + g * g - 2.0 * g * mu, mu),
             PhaseFunction::NishitaHazy => {
                 let c = 0.5 * (1.0 + mu);
                 (1.0 + 9.0 * c.powi(8)) / (8.0 * PI)
@@ -117,14 +125,8 @@ impl PhaseFunction {
             }
         };
         match *self {
-            PhaseFunction::HenyeyGreenstein { g } => {
-                let d = d(g);
-                INV_4PI * ((1.0 - g) * (1.0 + g)) / (d * d.sqrt())
-            }
-            PhaseFunction::CornetteShanks { g } => {
-                let d = d(g);
-                3.0 / (8.0 * PI) * ((1.0 - g) * (1.0 + g)) / (2.0 + g * g) * (1.0 + mu * mu) / (d * d.sqrt())
-            }
+            PhaseFunction::HenyeyGreenstein { g } => henyey_greenstein(g, d(g)),
+            PhaseFunction::CornetteShanks { g } => cornette_shanks(g, d(g), mu),
             _ => self.eval(mu),
         }
     }
@@ -306,7 +308,9 @@ impl DiscPhase {
         let mut nodes = vec![starts[0]];
         let mut values = vec![f(starts[0])];
         let mut table_error = 0.0f64;
-        // Depth-first refinement with an explicit stack, right half pushed first.
+        // Depth-first refinement, left to right: the stack holds the right
+        // ends of the cells still to do; a cell that fails is replaced by its
+        // left half (its midpoint pushed as the new right end).
         for w in starts.windows(2) {
             let (u1, f1) = (w[1], f(w[1]));
             let mut stack = vec![(u1, f1)];
