@@ -56,3 +56,40 @@ fn a_flag_set_during_the_render_cancels_it() {
     // Not a timing target: a bound far above the ≈ 0.2 s measured, far below the render's own time.
     assert!(set_at < Duration::from_secs(10), "stopped {set_at:?} after the flag was set");
 }
+
+#[test]
+fn a_flag_set_while_a_sun_disc_table_is_built_cancels_it() {
+    // A sun through a Henyey–Greenstein g = 0.9999 lobe at tolerance 1e-8:
+    // the disc-averaged phase table runs into its node budget, ≈ 2 s in a
+    // release build. The flag is asked inside the table, not only after it.
+    let scene = Scene::from_json_str(
+        r#"{"version": 1,
+            "camera": {"type": "perspective", "position": [0, 0, 0], "focal_length_mm": 2000.0,
+                       "orientation": {"look_at": {"target": [0, 0.8, 0.6], "up": [0, 0, 1]}}, "resolution": [5, 3]},
+            "lights": [{"type": "sun", "direction_to_sun": [0, 0.8, 0.6], "strength_w_m2": 3.0}],
+            "media": [{"type": "homogeneous", "scattering": 0.002,
+                       "bounds": {"box": {"min": [-50, -50, -50], "max": [50, 50, 50]}},
+                       "phase": {"type": "henyey_greenstein", "g": 0.9999}}],
+            "output": {"layers": ["inscatter"], "tolerance": 1e-8, "threads": 1, "pixel_filter": {"type": "none"}}}"#,
+        "needle lobe",
+    )
+    .unwrap();
+    let flag = AtomicBool::new(false);
+    let (taken, set_at) = std::thread::scope(|s| {
+        let setter = s.spawn(|| {
+            std::thread::sleep(Duration::from_millis(200));
+            flag.store(true, Ordering::Relaxed);
+            Instant::now()
+        });
+        let start = Instant::now();
+        let r = render_cancellable(&scene, None, Some(&flag));
+        assert!(matches!(r, Err(RenderError::Cancelled)), "{:?}", r.map(|_| ()));
+        let returned = Instant::now();
+        (returned.duration_since(start), returned.duration_since(setter.join().unwrap()))
+    });
+    // Asked every 64 averages (≈ 1 ms): a bound far above that, below the table's own time.
+    assert!(
+        set_at < Duration::from_millis(1000),
+        "stopped {set_at:?} after the flag was set ({taken:?} in all)"
+    );
+}

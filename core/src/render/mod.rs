@@ -1290,8 +1290,10 @@ fn render_channels<const C: usize, const K: usize>(
     cancel: Option<&AtomicBool>,
 ) -> Result<Images, RenderError> {
     let t0 = Instant::now();
-    // The preparation steps (media, sun disc tables, BVH, shadow volumes) are
-    // not interrupted inside, but none starts once a cancel is seen.
+    // The preparation steps (media, BVH, shadow volumes: milliseconds in
+    // every scene measured) are not interrupted inside, but none starts once
+    // a cancel is seen; the sun disc tables (seconds for a needle lobe at the
+    // node budget) stop inside.
     let cancelled = || cancel.is_some_and(|c| c.load(Ordering::Relaxed));
     let cam = CameraRays::new(&scene.camera);
     let mut lights = prepare_lights::<C>(scene, report);
@@ -1300,7 +1302,7 @@ fn render_channels<const C: usize, const K: usize>(
     if cancelled() {
         return Err(RenderError::Cancelled);
     }
-    report.error.sun_disc_rel = sun_disc_effect(scene, &media, &mut lights, report);
+    report.error.sun_disc_rel = sun_disc_effect(scene, &media, &mut lights, report, &cancelled).ok_or(RenderError::Cancelled)?;
     if cancelled() {
         return Err(RenderError::Cancelled);
     }
@@ -2923,8 +2925,15 @@ impl<const K: usize> filter::FilterSample for Sample<K> {
 /// phase function in the scene, the largest relative change of the sun's
 /// in-scatter from averaging over the disc is measured; where it exceeds the
 /// tolerance the disc-averaged phase function is tabulated (to a quarter of
-/// the tolerance) and used instead. Returns the remaining relative error.
-fn sun_disc_effect<const C: usize>(scene: &Scene, media: &[PreparedMedium<C>], lights: &mut LightSet<C>, report: &mut Report) -> f64 {
+/// the tolerance) and used instead. Returns the remaining relative error, or
+/// `None` when `stop()` turned true while a table was built.
+fn sun_disc_effect<const C: usize>(
+    scene: &Scene,
+    media: &[PreparedMedium<C>],
+    lights: &mut LightSet<C>,
+    report: &mut Report,
+    stop: &dyn Fn() -> bool,
+) -> Option<f64> {
     let mut phases: Vec<PhaseFunction> = Vec::new();
     for m in media {
         let ps = match m {
@@ -2976,7 +2985,7 @@ fn sun_disc_effect<const C: usize>(scene: &Scene, media: &[PreparedMedium<C>], l
         for p in &phases {
             let (r, theta) = p.point_sun_error(diameter);
             if r > tol {
-                let t = medium::phase::DiscPhase::build(*p, 0.5 * diameter, 0.25 * tol);
+                let t = medium::phase::DiscPhase::build_unless(*p, 0.5 * diameter, 0.25 * tol, stop)?;
                 report.plan.computed(
                     format!("{}: sun disc ({angular_diameter_deg}° wide) for {}", light_label(i, l), p.describe()),
                     format!(
@@ -3006,7 +3015,7 @@ fn sun_disc_effect<const C: usize>(scene: &Scene, media: &[PreparedMedium<C>], l
         }
         worst = worst.max(residual).max(table_residual);
     }
-    worst
+    Some(worst)
 }
 
 /// |r̄_c(λ)|·k·Δλ: bounds how a per-wavelength error maps into each RGB channel.
