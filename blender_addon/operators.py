@@ -245,7 +245,8 @@ class TYNDALL_OT_generate_sky(_JobOperator, bpy.types.Operator):
         apply_results, update_sun = st.apply_results, st.sky_update_sun
 
         def work(progress: Any) -> dict[str, Any]:
-            return tasks.sky_work(params, staging, progress)
+            # `job` is bound below, before the work can run: Esc stops the sky itself.
+            return tasks.sky_work(params, staging, progress, stop=job.stop_requested)
 
         def finish(ctx: bpy.types.Context, res: dict[str, Any]) -> str:
             staging.commit(res["files"])
@@ -258,7 +259,8 @@ class TYNDALL_OT_generate_sky(_JobOperator, bpy.types.Operator):
                 f"strength {lamp_rep.get('strength_w_m2', float('nan')):.4g} W/m²)"
             )
 
-        return Job(work, "sky", on_discard=lambda _r: staging.discard()), finish
+        job = Job(work, "sky", on_discard=lambda _r: staging.discard())
+        return job, finish
 
 
 def _export_usd(context: bpy.types.Context, path: str, built: BuiltScene) -> str:

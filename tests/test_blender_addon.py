@@ -249,6 +249,38 @@ def test_cancelling_a_volumetrics_job_stops_the_render(tmp_path: Path) -> None:
     assert not os.path.exists(staging.path)
 
 
+def test_cancelling_a_sky_job_stops_the_sky(tmp_path: Path) -> None:
+    """The sky job gets the same stop event (tyndall.sky(..., cancel=)): a 16384 px
+    sky at 1e-6 (seconds) stops, so the discarded result is None (the work raised
+    RenderCancelled), not a finished sky, and the staging folder is removed."""
+    from blender_addon.core import tasks
+
+    params = tasks.SkyParams(sun_elevation_deg=10.0, width=16384, tolerance=1e-6)
+    staging = Staging(str(tmp_path / "out"))
+    discarded: list[Any] = []
+
+    def work(progress: Any) -> dict[str, Any]:
+        return tasks.sky_work(params, staging, progress, stop=job.stop_requested)
+
+    def discard(result: Any) -> None:
+        discarded.append(result)
+        staging.discard()
+
+    job = Job(work, "sky", on_discard=discard)
+    job.start()
+    for _ in range(200):
+        if job.message == "rendering sky":
+            break
+        threading.Event().wait(0.05)
+    assert job.message == "rendering sky"
+    threading.Event().wait(0.3)
+    assert job.cancel() and job.stop_requested.is_set()
+    assert job.wait(60)
+    assert job.poll() is JobState.CANCELLED
+    assert discarded == [None], "the sky ran to the end after the cancel"
+    assert not os.path.exists(staging.path)
+
+
 def test_staging_is_all_or_nothing(tmp_path: Path) -> None:
     out = tmp_path / "out"
     st = Staging(str(out))

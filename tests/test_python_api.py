@@ -586,3 +586,36 @@ def test_a_set_cancel_event_writes_no_file(tmp_path: Path) -> None:
     stop.clear()
     layers, _ = tyndall.render(tiny, cancel=stop)
     assert layers["inscatter"].shape == (4, 8, 3)
+
+
+def test_a_cancel_event_stops_a_sky(tmp_path: Path) -> None:
+    """`tyndall.sky` takes the same `cancel`: a 16384 px wide sky at tolerance
+    1e-6 (seconds) stops once the event is set, raises RenderCancelled and
+    writes nothing; an event set before the call cancels even a tiny sky."""
+    stop = threading.Event()
+    outcome: list[BaseException | None] = []
+    out = tmp_path / "sky.exr"
+
+    def worker() -> None:
+        try:
+            tyndall.sky(10.0, width=16384, tolerance=1e-6, out=out, cancel=stop)
+            outcome.append(None)
+        except BaseException as e:  # noqa: BLE001 - inspected below
+            outcome.append(e)
+
+    thread = threading.Thread(target=worker)
+    thread.start()
+    time.sleep(0.3)
+    stop.set()
+    set_at = time.monotonic()
+    thread.join(120)
+    assert not thread.is_alive()
+    # Not a timing target: far above the delay measured, below the sky's own time.
+    assert time.monotonic() - set_at < 5.0
+    assert len(outcome) == 1 and isinstance(outcome[0], tyndall.RenderCancelled), outcome
+    assert list(tmp_path.iterdir()) == []
+    with pytest.raises(tyndall.RenderCancelled):
+        tyndall.sky(10.0, width=16, cancel=stop)
+    stop.clear()
+    rgb, report = tyndall.sky(10.0, width=16, cancel=stop)
+    assert rgb.shape == (8, 16, 3) and report["sun_lamp"]["strength_w_m2"] > 0

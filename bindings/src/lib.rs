@@ -335,8 +335,10 @@ fn render_to_files(
 /// maps it) and the report with the matching sun lamp. With `out`, also writes
 /// the EXR (plain R, G, B) and the report next to it. `multiple_scattering`
 /// (default false) adds the approximate isotropic second-order term.
+/// Interruptible like `render` (Ctrl-C, or `cancel`, an object with
+/// `is_set()`, which raises `RenderCancelled`); nothing is written then.
 #[pyfunction]
-#[pyo3(signature = (sun_elevation_deg, sun_rotation_deg = 0.0, *, air = 1.0, aerosol = 1.0, ozone = 1.0, altitude_m = 0.0, sun_size_deg = 0.545, width = 1024, tolerance = 1e-3, sun_disc = true, multiple_scattering = false, out = None))]
+#[pyo3(signature = (sun_elevation_deg, sun_rotation_deg = 0.0, *, air = 1.0, aerosol = 1.0, ozone = 1.0, altitude_m = 0.0, sun_size_deg = 0.545, width = 1024, tolerance = 1e-3, sun_disc = true, multiple_scattering = false, out = None, cancel = None))]
 #[allow(clippy::too_many_arguments)]
 fn sky<'py>(
     py: Python<'py>,
@@ -352,6 +354,7 @@ fn sky<'py>(
     sun_disc: bool,
     multiple_scattering: bool,
     out: Option<PathBuf>,
+    cancel: Option<Bound<'py, PyAny>>,
 ) -> PyResult<(Bound<'py, PyAny>, String)> {
     let params = tyndall_core::sky::atmosphere::AtmosphereParams {
         air_density: air,
@@ -383,14 +386,18 @@ fn sky<'py>(
         tolerance,
         sun_disc,
     };
-    let (tex, report) = py.detach(|| {
+    let rendered = interruptible(py, cancel.as_ref(), move |flag| {
+        let options = tyndall_core::sky::texture::BuildOptions::default();
+        let render = |model: &dyn tyndall_core::sky::texture::SkyModel| {
+            tyndall_core::sky::render_world_cancellable(model, "atmosphere", &settings, &options, Some(flag))
+        };
         if multiple_scattering {
-            let ms = tyndall_core::sky::atmosphere::AtmosphereWithMultipleScattering::new(params, 1e-3);
-            tyndall_core::sky::render_world(&ms, "atmosphere", &settings)
+            render(&tyndall_core::sky::atmosphere::AtmosphereWithMultipleScattering::new(params, 1e-3))
         } else {
-            tyndall_core::sky::render_world(&params, "atmosphere", &settings)
+            render(&params)
         }
-    });
+    })?;
+    let (tex, report) = rendered.ok_or_else(|| RenderCancelled::new_err("the sky was cancelled (its cancel event was set)"))?;
     if let Some(path) = out {
         let written = py.detach(|| {
             tyndall_core::io::write_rgb_exr(&path, tex.width, tex.height, &tex.rgb).map_err(|e| e.to_string())?;

@@ -13,10 +13,11 @@ States::
                                   +--cancel()----------> CANCELLED
 
 Cancelling sets :attr:`Job.stop_requested`, which the work passes to ``tyndall.render`` /
-``render_to_files`` as ``cancel=``: the Rust renderer then stops within about one view ray's
-time and raises ``tyndall.RenderCancelled``. Work that cannot be stopped (``tyndall.sky``)
-runs on. Either way its result is discarded when the worker returns (``on_discard`` runs in
-the worker, e.g. to delete the staging folder); the caller stops waiting immediately.
+``render_to_files`` / ``tyndall.sky`` as ``cancel=``: the Rust renderer then stops within
+about one view ray's time (the sky within one round of its grid or one row) and raises
+``tyndall.RenderCancelled``. Work that cannot be stopped runs on. Either way its result is
+discarded when the worker returns (``on_discard`` runs in the worker, e.g. to delete the
+staging folder); the caller stops waiting immediately.
 """
 
 from __future__ import annotations

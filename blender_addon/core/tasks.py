@@ -108,13 +108,18 @@ class SkyParams:
         return d
 
 
-def sky_work(params: SkyParams, staging: Staging, progress: ProgressFn) -> dict[str, Any]:
-    """Render sky.exr (+ sky.report.json) into ``staging``; returns the report."""
+def sky_work(
+    params: SkyParams, staging: Staging, progress: ProgressFn, stop: threading.Event | None = None
+) -> dict[str, Any]:
+    """Render sky.exr (+ sky.report.json) into ``staging``; returns the report.
+
+    Once ``stop`` is set the sky stops and ``tyndall.RenderCancelled`` is raised.
+    """
     import tyndall
 
     progress(0.05, "rendering sky")
     tmp = staging.file(SKY_EXR)
-    _rgb, report = tyndall.sky(params.sun_elevation_deg, out=tmp, **params.kwargs())
+    _rgb, report = tyndall.sky(params.sun_elevation_deg, out=tmp, cancel=stop, **params.kwargs())
     side = os.path.splitext(tmp)[0] + ".report.json"  # written by tyndall.sky next to OUT
     if os.path.exists(side) and side != staging.file(SKY_REPORT_JSON):
         os.replace(side, staging.file(SKY_REPORT_JSON))

@@ -93,3 +93,46 @@ fn a_flag_set_while_a_sun_disc_table_is_built_cancels_it() {
         "stopped {set_at:?} after the flag was set ({taken:?} in all)"
     );
 }
+
+#[test]
+fn a_sky_stops_when_its_flag_is_set() {
+    use tyndall_core::sky::{
+        atmosphere::AtmosphereParams,
+        render_world, render_world_cancellable,
+        texture::{BuildOptions, TextureSettings},
+    };
+    let params = AtmosphereParams {
+        sun_elevation_rad: 10f64.to_radians(),
+        ..Default::default()
+    };
+    let settings = TextureSettings {
+        width: 64,
+        tolerance: 1e-3,
+        sun_disc: true,
+    };
+    let options = BuildOptions::default();
+    let set = AtomicBool::new(true);
+    assert!(render_world_cancellable(&params, "atmosphere", &settings, &options, Some(&set)).is_none());
+    let unset = AtomicBool::new(false);
+    let (a, _) = render_world_cancellable(&params, "atmosphere", &settings, &options, Some(&unset)).unwrap();
+    let (b, _) = render_world(&params, "atmosphere", &settings);
+    assert_eq!(a.rgb, b.rgb);
+    // Set while a large sky is built (8192 px at 1e-6: ≈ 3 s in a release build).
+    let big = TextureSettings {
+        width: 8192,
+        tolerance: 1e-6,
+        sun_disc: true,
+    };
+    let flag = AtomicBool::new(false);
+    let set_at = std::thread::scope(|s| {
+        let setter = s.spawn(|| {
+            std::thread::sleep(Duration::from_millis(200));
+            flag.store(true, Ordering::Relaxed);
+            Instant::now()
+        });
+        assert!(render_world_cancellable(&params, "atmosphere", &big, &options, Some(&flag)).is_none());
+        Instant::now().duration_since(setter.join().unwrap())
+    });
+    // Not a timing target: far above the 0.01–0.4 s measured, below the sky's own time.
+    assert!(set_at < Duration::from_secs(2), "stopped {set_at:?} after the flag was set");
+}

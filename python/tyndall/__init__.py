@@ -196,6 +196,7 @@ def sky(
     sun_disc: bool = True,
     multiple_scattering: bool = False,
     out: str | os.PathLike[str] | None = None,
+    cancel: CancelEvent | None = None,
 ) -> tuple[np.ndarray, dict[str, Any]]:
     """Render a sky world texture with the layered atmosphere (Blender's Sky Texture parameters).
 
@@ -207,6 +208,10 @@ def sky(
     ``multiple_scattering=True`` adds an optional, approximate multiple-scattering term
     (isotropic second order, off by default; ``report["multiple_scattering"]`` says so).
     Invalid parameters raise :class:`SceneFormatError` naming the field.
+
+    Like :func:`render` it can be interrupted: Ctrl-C (or any signal handler's
+    exception) comes out of ``sky``, and once ``cancel`` (a :class:`threading.Event`)
+    is set it raises :class:`RenderCancelled`; nothing is returned or written then.
     """
     rgb, report_json = _sky(
         sun_elevation_deg,
@@ -221,5 +226,6 @@ def sky(
         sun_disc=sun_disc,
         multiple_scattering=multiple_scattering,
         out=os.fspath(out) if out is not None else None,
+        cancel=cancel,
     )
     return rgb, json.loads(report_json)

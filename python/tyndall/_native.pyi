@@ -55,4 +55,5 @@ def sky(
     sun_disc: bool = True,
     multiple_scattering: bool = False,
     out: str | None = None,
+    cancel: _CancelEvent | None = None,
 ) -> tuple[np.ndarray, str]: ...

@@ -96,8 +96,21 @@ pub fn render_world_with(
     settings: &texture::TextureSettings,
     options: &texture::BuildOptions,
 ) -> (texture::WorldTexture, SkyReport) {
+    render_world_cancellable(model, model_name, settings, options, None).expect("never cancelled")
+}
+
+/// [`render_world_with`] that stops early, returning `None` (no texture,
+/// no report), once another thread sets `cancel`
+/// ([`texture::build_world_texture_cancellable`]).
+pub fn render_world_cancellable(
+    model: &dyn texture::SkyModel,
+    model_name: &str,
+    settings: &texture::TextureSettings,
+    options: &texture::BuildOptions,
+    cancel: Option<&std::sync::atomic::AtomicBool>,
+) -> Option<(texture::WorldTexture, SkyReport)> {
     let t0 = Instant::now();
-    let tex = texture::build_world_texture_with(model, settings, options);
+    let tex = texture::build_world_texture_cancellable(model, settings, options, cancel)?;
     let seconds = t0.elapsed().as_secs_f64();
     let colour = &tex.colour;
     let mut plan = Plan {
@@ -221,7 +234,7 @@ pub fn render_world_with(
         multiple_scattering: ms.is_some(),
         plan,
     };
-    (tex, report)
+    Some((tex, report))
 }
 
 /// The values for a Blender sun lamp that matches a sky: direction, colour and

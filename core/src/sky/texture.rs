@@ -701,6 +701,9 @@ struct Probe<'a> {
     eval: &'a (dyn Fn(f64, f64) -> PointEval + Sync),
     cos_mu: &'a (dyn Fn(f64, f64) -> f64 + Sync),
     lit: &'a (dyn Fn(f64, f64) -> Option<f64> + Sync),
+    /// True once the build is to stop ([`build_world_texture_cancellable`]):
+    /// asked before each round of refinement.
+    stop: &'a (dyn Fn() -> bool + Sync),
 }
 
 /// A cell's largest misses at its check points, relative to luminance:
@@ -1004,6 +1007,10 @@ impl Half {
         }
         let worst = |m: Misses| m.0.max(m.1).max(m.2);
         while !pending.is_empty() {
+            if (probe.stop)() {
+                // The half is left unfinished; the caller returns no texture.
+                break;
+            }
             // Every point the pending cells need: corners, centre, edge midpoints.
             let mut need: Vec<(u32, u32)> = Vec::new();
             for (c, _) in &pending {
@@ -1579,6 +1586,20 @@ pub const GRID_TOLERANCE_FRACTION: f64 = 0.8;
 
 /// Builds the world texture of `model`.
 pub fn build_world_texture_with(model: &dyn SkyModel, settings: &TextureSettings, options: &BuildOptions) -> WorldTexture {
+    build_world_texture_cancellable(model, settings, options, None).expect("never cancelled")
+}
+
+/// [`build_world_texture_with`] that stops early, returning `None`, once
+/// another thread sets `cancel`: asked before each round of the grid's
+/// refinement and before each output row (the Klassen baseline integrator
+/// is not interrupted).
+pub fn build_world_texture_cancellable(
+    model: &dyn SkyModel,
+    settings: &TextureSettings,
+    options: &BuildOptions,
+    cancel: Option<&std::sync::atomic::AtomicBool>,
+) -> Option<WorldTexture> {
+    let cancelled = || cancel.is_some_and(|c| c.load(std::sync::atomic::Ordering::Relaxed));
     let width = settings.width.max(2);
     let height = (width / 2).max(1);
     let sun = model.sun_direction();
@@ -1590,7 +1611,7 @@ pub fn build_world_texture_with(model: &dyn SkyModel, settings: &TextureSettings
         DVec3::new(st * phi.cos(), st * phi.sin(), ct)
     };
     if let Integrator::KlassenCoherence { threshold } = options.integrator {
-        return build_coherence(model, settings, threshold);
+        return Some(build_coherence(model, settings, threshold)).filter(|_| !cancelled());
     }
     let (rgb_path, decision) = decide_colour(model, tol, options.colour);
     let grid_tol = GRID_TOLERANCE_FRACTION * tol;
@@ -1622,9 +1643,13 @@ pub fn build_world_texture_with(model: &dyn SkyModel, settings: &TextureSettings
         eval: &eval,
         cos_mu: &cos_mu,
         lit: &lit,
+        stop: &cancelled,
     };
     let upper = Half::build(0.0, horizon - SIDE, &probe, grid_tol, &limits(horizon), &mut stats);
     let lower = Half::build(horizon + SIDE, PI, &probe, grid_tol, &limits(PI - horizon), &mut stats);
+    if cancelled() {
+        return None;
+    }
 
     // Resampling. Pixel (i, j) looks along θ_j = π(j + ½)/H and φ_i = π − 2π(i + ½)/W
     // (Cycles' mapping, `equirect_direction`): Δφ depends on the column only, θ on
@@ -1664,6 +1689,9 @@ pub fn build_world_texture_with(model: &dyn SkyModel, settings: &TextureSettings
             )
         },
         |(mu, weights, fitted), (j, row)| {
+            if cancelled() {
+                return;
+            }
             fitted.clear();
             let theta = PI * (j as f64 + 0.5) / height as f64;
             let (st, ct) = theta.sin_cos();
@@ -1769,8 +1797,11 @@ pub fn build_world_texture_with(model: &dyn SkyModel, settings: &TextureSettings
         },
     );
 
+    if cancelled() {
+        return None;
+    }
     let (sun_pixels, sun_rgb) = add_sun_disc(model, settings, width, height, &mut rgb);
-    WorldTexture {
+    Some(WorldTexture {
         width,
         height,
         rgb,
@@ -1791,7 +1822,7 @@ pub fn build_world_texture_with(model: &dyn SkyModel, settings: &TextureSettings
         row_fitted_pixels: row_fitted.into_inner(),
         row_fit_evaluations: row_fit_evaluations.into_inner(),
         shadowed_points: stats.in_shadow,
-    }
+    })
 }
 
 /// Klassen's pixel-coherence baseline ([`Integrator::KlassenCoherence`]): rows in
