@@ -545,31 +545,41 @@ def test_a_signal_handler_exception_stops_render_to_files(tmp_path: Path) -> Non
     assert list(tmp_path.iterdir()) == []
 
 
-def test_a_cancel_event_stops_a_render_on_another_thread() -> None:
-    """Signals reach only the main thread; a render on a worker thread (as
-    Blender's background job runs it) is stopped by its `cancel` event and
-    raises RenderCancelled, a RenderFailed."""
+def _cancelled_on_a_worker(
+    call: Callable[[threading.Event], object], delay: float
+) -> tuple[BaseException | None, float]:
+    """Runs ``call(stop)`` on a worker thread, sets ``stop`` after ``delay`` s and
+    waits for the worker: what it raised (None if it returned) and how long
+    after the event it ended."""
     stop = threading.Event()
     outcome: list[BaseException | None] = []
 
     def worker() -> None:
         try:
-            tyndall.render(_slow_stage(), cancel=stop)
+            call(stop)
             outcome.append(None)
-        except BaseException as e:  # noqa: BLE001 - inspected below
+        except BaseException as e:  # noqa: BLE001 - inspected by the caller
             outcome.append(e)
 
     thread = threading.Thread(target=worker)
     thread.start()
-    time.sleep(0.5)
+    time.sleep(delay)
     stop.set()
     set_at = time.monotonic()
-    thread.join(60)
-    assert not thread.is_alive()
+    thread.join(120)
+    assert not thread.is_alive() and len(outcome) == 1
+    return outcome[0], time.monotonic() - set_at
+
+
+def test_a_cancel_event_stops_a_render_on_another_thread() -> None:
+    """Signals reach only the main thread; a render on a worker thread (as
+    Blender's background job runs it) is stopped by its `cancel` event and
+    raises RenderCancelled, a RenderFailed."""
+    raised, after = _cancelled_on_a_worker(lambda stop: tyndall.render(_slow_stage(), cancel=stop), 0.5)
     # Not a timing target: far above the measured delay, far below the render's time.
-    assert time.monotonic() - set_at < 10.0
-    assert len(outcome) == 1 and isinstance(outcome[0], tyndall.RenderCancelled), outcome
-    assert isinstance(outcome[0], tyndall.RenderFailed)
+    assert after < 10.0
+    assert isinstance(raised, tyndall.RenderCancelled), raised
+    assert isinstance(raised, tyndall.RenderFailed)
 
 
 def test_a_set_cancel_event_writes_no_file(tmp_path: Path) -> None:
@@ -592,28 +602,16 @@ def test_a_cancel_event_stops_a_sky(tmp_path: Path) -> None:
     """`tyndall.sky` takes the same `cancel`: a 16384 px wide sky at tolerance
     1e-6 (seconds) stops once the event is set, raises RenderCancelled and
     writes nothing; an event set before the call cancels even a tiny sky."""
-    stop = threading.Event()
-    outcome: list[BaseException | None] = []
     out = tmp_path / "sky.exr"
-
-    def worker() -> None:
-        try:
-            tyndall.sky(10.0, width=16384, tolerance=1e-6, out=out, cancel=stop)
-            outcome.append(None)
-        except BaseException as e:  # noqa: BLE001 - inspected below
-            outcome.append(e)
-
-    thread = threading.Thread(target=worker)
-    thread.start()
-    time.sleep(0.3)
-    stop.set()
-    set_at = time.monotonic()
-    thread.join(120)
-    assert not thread.is_alive()
+    raised, after = _cancelled_on_a_worker(
+        lambda stop: tyndall.sky(10.0, width=16384, tolerance=1e-6, out=out, cancel=stop), 0.3
+    )
     # Not a timing target: far above the delay measured, below the sky's own time.
-    assert time.monotonic() - set_at < 5.0
-    assert len(outcome) == 1 and isinstance(outcome[0], tyndall.RenderCancelled), outcome
+    assert after < 5.0
+    assert isinstance(raised, tyndall.RenderCancelled), raised
     assert list(tmp_path.iterdir()) == []
+    stop = threading.Event()
+    stop.set()
     with pytest.raises(tyndall.RenderCancelled):
         tyndall.sky(10.0, width=16, cancel=stop)
     stop.clear()
