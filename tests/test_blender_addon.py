@@ -237,16 +237,35 @@ def test_cancelling_a_volumetrics_job_stops_the_render(tmp_path: Path) -> None:
     job = Job(work, "volumetrics", on_discard=lambda _r: staging.discard())
     job.start()
     for _ in range(200):
-        if job.message == "rendering volumetrics":
+        if job.message.startswith("rendering volumetrics"):
             break
         threading.Event().wait(0.05)
-    assert job.message == "rendering volumetrics"
+    assert job.message.startswith("rendering volumetrics")
     threading.Event().wait(0.3)
     assert job.cancel() and job.stop_requested.is_set()
     # Not a timing target: the render would take far longer; its stop takes ≈ 0.2 s.
     assert job.wait(20), "the worker is still rendering after the cancel"
     assert job.poll() is JobState.CANCELLED
     assert not os.path.exists(staging.path)
+
+
+def test_volumetrics_work_reports_the_render_s_progress(tmp_path: Path) -> None:
+    """The job's progress follows the render (rows, then the pixel filter) instead of
+    sitting at "rendering volumetrics" until the end."""
+    from blender_addon.core import tasks
+    from blender_addon.core.scene_build import BuiltScene
+
+    scene = json.loads((REPO / "examples" / "stage_four_spots.json").read_text())
+    scene["camera"]["resolution"], scene["output"]["tolerance"] = [160, 90], 1e-2
+    built = BuiltScene(scene=scene, ies_texts={}, light_names={}, notes=[])
+    staging = Staging(str(tmp_path / "out"))
+    seen: list[tuple[float, str]] = []
+    tasks.volumetrics_work(built, staging, lambda f, m="": seen.append((f, m)))
+    staging.discard()
+    # (The rows of this small frame may all be done between two 50 ms polls.)
+    filtered = [(f, m) for f, m in seen if m.startswith("rendering volumetrics: pixel filter")]
+    assert filtered and filtered[-1][0] == pytest.approx(0.95), filtered[-1]
+    assert all(0.1 <= f <= 0.95 + 1e-12 for f, m in seen if m.startswith("rendering volumetrics"))
 
 
 def test_cancelling_a_sky_job_stops_the_sky(tmp_path: Path) -> None:

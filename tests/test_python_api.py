@@ -617,3 +617,34 @@ def test_a_cancel_event_stops_a_sky(tmp_path: Path) -> None:
     stop.clear()
     rgb, report = tyndall.sky(10.0, width=16, cancel=stop)
     assert rgb.shape == (8, 16, 3) and report["sun_lamp"]["strength_w_m2"] > 0
+
+
+def test_progress_reports_rows_then_the_pixel_filter(tmp_path: Path) -> None:
+    """`progress(stage, done, total)` is called on the calling thread: rows, then
+    the pixels the filter integrates, ending at their total (the report's
+    `edge_pixels`); an exception it raises stops the render and comes out."""
+    scene = json.loads((EXAMPLES_DIR / "stage_four_spots.json").read_text())
+    scene["camera"]["resolution"], scene["output"]["tolerance"] = [160, 90], 1e-2
+    calls: list[tuple[str, int, int, int]] = []
+    main = threading.get_ident()
+
+    def record(stage: str, done: int, total: int) -> None:
+        calls.append((stage, done, total, threading.get_ident()))
+
+    report = tyndall.render_to_files(scene, tmp_path / "a.exr", progress=record)
+    assert calls and all(c[3] == main for c in calls)
+    stages = [c[0] for c in calls]
+    assert set(stages) <= {"rendering rows", "pixel filter"}
+    # Rows before the filter; the last call is the finished filter.
+    assert stages == sorted(stages, key=lambda s: s == "pixel filter")
+    assert calls[-1][:3] == ("pixel filter", report["error"]["edge_pixels"], report["error"]["edge_pixels"])
+    assert all(c[2] == 90 for c in calls if c[0] == "rendering rows")
+
+    class Enough(Exception):
+        pass
+
+    def give_up(stage: str, done: int, total: int) -> None:
+        raise Enough(stage)
+
+    with pytest.raises(Enough):
+        tyndall.render(_slow_stage(), progress=give_up)

@@ -66,9 +66,14 @@ fn render_err(py: Python<'_>, e: RenderError) -> PyErr {
 /// so this is how a render on another thread (Blender's background job) is
 /// stopped. Once it is set, `cancel` is set and the work's own result
 /// (`RenderError::Cancelled`) is returned.
+///
+/// `poll` runs on the calling thread with the interpreter held, at every
+/// check and once after the work ends (to pass on progress, [`ProgressRelay`]);
+/// an exception it raises stops the work like a signal's.
 fn interruptible<T: Send + 'static>(
     py: Python<'_>,
     stop: Option<&Bound<'_, PyAny>>,
+    poll: &mut dyn FnMut(Python<'_>) -> PyResult<()>,
     work: impl FnOnce(&AtomicBool) -> T + Send + 'static,
 ) -> PyResult<T> {
     /// What the caller and the worker share. Owned by both (an `Arc`, not a
@@ -123,10 +128,12 @@ fn interruptible<T: Send + 'static>(
             *guard
         });
         if done {
-            return join(worker);
+            let result = join(worker)?;
+            poll(py)?;
+            return Ok(result);
         }
         let stop_asked = stop.map_or(Ok(false), is_set);
-        match py.check_signals().and(stop_asked) {
+        match py.check_signals().and_then(|_| poll(py)).and(stop_asked) {
             Ok(false) => {}
             Ok(true) => {
                 shared.cancel.store(true, Ordering::Relaxed);
@@ -137,6 +144,39 @@ fn interruptible<T: Send + 'static>(
                 let _ = py.detach(|| join(worker));
                 return Err(raised);
             }
+        }
+    }
+}
+
+/// Progress from the render's worker threads to a Python callable
+/// `progress(stage, done, total)` (`stage` "rendering rows" or "pixel
+/// filter"): the workers store the latest state, and the calling thread
+/// passes it on when [`interruptible`] polls (every 50 ms, and at the end),
+/// so the callable runs on the caller's thread, at most 20 times a second.
+#[derive(Clone, Default)]
+struct ProgressRelay {
+    latest: Arc<Mutex<Option<(tyndall_core::RenderStage, usize, usize)>>>,
+}
+
+impl ProgressRelay {
+    /// The callback for the core (called from worker threads).
+    fn store(&self, stage: tyndall_core::RenderStage, done: usize, total: usize) {
+        *self.latest.lock().unwrap_or_else(|e| e.into_inner()) = Some((stage, done, total));
+    }
+
+    /// A poll hook that calls `callable` with each new state (nothing without a callable).
+    fn poll<'a, 'py>(&'a self, callable: Option<&'a Bound<'py, PyAny>>) -> impl FnMut(Python<'_>) -> PyResult<()> + 'a {
+        let mut last = None;
+        move |_py| {
+            let Some(f) = callable else { return Ok(()) };
+            let now = *self.latest.lock().unwrap_or_else(|e| e.into_inner());
+            if now.is_some() && now != last {
+                last = now;
+                if let Some((stage, done, total)) = now {
+                    f.call1((stage.label(), done, total))?;
+                }
+            }
+            Ok(())
         }
     }
 }
@@ -246,7 +286,8 @@ fn rgb_array<'py>(py: Python<'py>, px: Vec<[f32; 3]>, w: usize, h: usize) -> PyR
 /// `inscatter.<light name>` and `surface_transmittance.<light name>` per stage light: H×W×3; `depth`: H×W), row 0 at the top, and the report as a JSON string.
 /// The interpreter is released while rendering.
 #[pyfunction]
-#[pyo3(signature = (scene, tolerance = None, threads = None, layers = None, cancel = None))]
+#[pyo3(signature = (scene, tolerance = None, threads = None, layers = None, cancel = None, progress = None))]
+#[allow(clippy::too_many_arguments)]
 fn render<'py>(
     py: Python<'py>,
     scene: &PyScene,
@@ -254,10 +295,14 @@ fn render<'py>(
     threads: Option<usize>,
     layers: Option<Vec<String>>,
     cancel: Option<Bound<'py, PyAny>>,
+    progress: Option<Bound<'py, PyAny>>,
 ) -> PyResult<(Bound<'py, PyDict>, String)> {
     let s = with_overrides(&scene.inner, tolerance, threads, layers)?;
-    let (mut images, mut report) = interruptible(py, cancel.as_ref(), move |flag| {
-        tyndall_core::render_cancellable(&s, None, Some(flag))
+    let relay = ProgressRelay::default();
+    let to_relay = relay.clone();
+    let (mut images, mut report) = interruptible(py, cancel.as_ref(), &mut relay.poll(progress.as_ref()), move |flag| {
+        let cb = |stage, done, total| to_relay.store(stage, done, total);
+        tyndall_core::render_cancellable(&s, Some(&cb), Some(flag))
     })?
     .map_err(|e| render_err(py, e))?;
     report.resolution = [images.width, images.height];
@@ -304,7 +349,7 @@ fn render<'py>(
 /// Renders and writes the EXR (and optionally report JSON and PNG preview)
 /// atomically; returns the report as a JSON string.
 #[pyfunction]
-#[pyo3(signature = (scene, out, report = None, preview = None, tolerance = None, threads = None, cancel = None))]
+#[pyo3(signature = (scene, out, report = None, preview = None, tolerance = None, threads = None, cancel = None, progress = None))]
 // The Python signature's keywords, one argument each (as `sky`).
 #[allow(clippy::too_many_arguments)]
 fn render_to_files(
@@ -316,10 +361,14 @@ fn render_to_files(
     tolerance: Option<f64>,
     threads: Option<usize>,
     cancel: Option<Bound<'_, PyAny>>,
+    progress: Option<Bound<'_, PyAny>>,
 ) -> PyResult<String> {
     let s = with_overrides(&scene.inner, tolerance, threads, None)?;
-    let r = interruptible(py, cancel.as_ref(), move |flag| {
-        tyndall_cli::render_to_files_cancellable(&s, &out, report.as_deref(), preview.as_deref(), false, Some(flag))
+    let relay = ProgressRelay::default();
+    let to_relay = relay.clone();
+    let r = interruptible(py, cancel.as_ref(), &mut relay.poll(progress.as_ref()), move |flag| {
+        let cb = |stage, done, total| to_relay.store(stage, done, total);
+        tyndall_cli::render_to_files_reporting(&s, &out, report.as_deref(), preview.as_deref(), Some(&cb), Some(flag))
     })?;
     match r {
         Ok(rep) => Ok(rep.to_json()),
@@ -386,7 +435,7 @@ fn sky<'py>(
         tolerance,
         sun_disc,
     };
-    let rendered = interruptible(py, cancel.as_ref(), move |flag| {
+    let rendered = interruptible(py, cancel.as_ref(), &mut |_| Ok(()), move |flag| {
         let options = tyndall_core::sky::texture::BuildOptions::default();
         let render = |model: &dyn tyndall_core::sky::texture::SkyModel| {
             tyndall_core::sky::render_world_cancellable(model, "atmosphere", &settings, &options, Some(flag))

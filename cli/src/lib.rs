@@ -493,21 +493,37 @@ pub fn render_to_files_cancellable(
     progress: bool,
     cancel: Option<&std::sync::atomic::AtomicBool>,
 ) -> Result<Report, CliError> {
-    let bar = if progress { Some(progress_bar()) } else { None };
-    let cb = |done: usize, total: usize| {
+    let bar = progress.then(progress_bar);
+    let cb = |stage: tyndall_core::RenderStage, done: usize, total: usize| {
         if let Some(b) = &bar {
+            b.set_message(stage.label());
             b.set_length(total as u64);
             b.set_position(done as u64);
         }
     };
-    let (images, mut report) = tyndall_core::render_cancellable(scene, Some(&cb), cancel)?;
+    let shown: Option<tyndall_core::render::Progress<'_>> = bar.is_some().then_some(&cb);
+    let result = render_to_files_reporting(scene, out, report_path, preview, shown, cancel);
+    if let Some(b) = &bar {
+        b.finish_and_clear();
+    }
+    result
+}
+
+/// [`render_to_files_cancellable`] with any progress callback (rows, then the
+/// pixel filter's pixels; [`tyndall_core::RenderStage`]) instead of the bar.
+pub fn render_to_files_reporting(
+    scene: &Scene,
+    out: &Path,
+    report_path: Option<&Path>,
+    preview: Option<&Path>,
+    progress: Option<tyndall_core::render::Progress<'_>>,
+    cancel: Option<&std::sync::atomic::AtomicBool>,
+) -> Result<Report, CliError> {
+    let (images, mut report) = tyndall_core::render_cancellable(scene, progress, cancel)?;
     // A cancel that came after the last ray: still nothing is written.
     let cancelled = || cancel.is_some_and(|c| c.load(std::sync::atomic::Ordering::Relaxed));
     if cancelled() {
         return Err(tyndall_core::RenderError::Cancelled.into());
-    }
-    if let Some(b) = &bar {
-        b.finish_and_clear();
     }
     report.resolution = [images.width, images.height];
     let t = Instant::now();
@@ -709,7 +725,7 @@ pub fn preview_image(images: &Images) -> Vec<[f32; 3]> {
 fn progress_bar() -> ProgressBar {
     let b = ProgressBar::new(1);
     b.set_style(
-        ProgressStyle::with_template("{spinner} rendering rows {bar:40} {pos}/{len} {elapsed_precise}")
+        ProgressStyle::with_template("{spinner} {msg:14} {bar:40} {pos}/{len} {elapsed_precise}")
             .unwrap_or_else(|_| ProgressStyle::default_bar()),
     );
     b

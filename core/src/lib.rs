@@ -26,7 +26,7 @@ pub mod scene;
 pub mod sky;
 pub mod spectrum;
 
-pub use render::{Images, RenderError, render, render_cancellable};
+pub use render::{Images, RenderError, RenderStage, render, render_cancellable};
 pub use report::Report;
 pub use scene::{Scene, SceneError};
 

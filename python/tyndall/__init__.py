@@ -17,7 +17,7 @@ from __future__ import annotations
 import json
 import math
 import os
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any, Protocol, Union
 
 import numpy as np
@@ -44,8 +44,17 @@ class CancelEvent(Protocol):
 
     def is_set(self) -> bool: ...
 
+
+ProgressCallback = Callable[[str, int, int], object]
+"""What ``progress=`` takes: called as ``progress(stage, done, total)`` on the calling
+thread, at most every 50 ms and once at the end. ``stage`` is ``"rendering rows"``
+(``done``/``total`` count image rows) and then, where pixels need Blender's pixel filter
+integral, ``"pixel filter"`` (they count those pixels; where it runs, this stage is most
+of the time). An exception it raises stops the render and comes out of the call."""
+
 __all__ = [
     "CancelEvent",
+    "ProgressCallback",
     "RenderCancelled",
     "RenderFailed",
     "Scene",
@@ -130,6 +139,7 @@ def render(
     threads: int | None = None,
     layers: Sequence[str] | None = None,
     cancel: CancelEvent | None = None,
+    progress: ProgressCallback | None = None,
 ) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
     """Render ``scene``; return ``(layers, report)``.
 
@@ -148,9 +158,10 @@ def render(
     measured for a 1080p stage); no partial image is returned. Signals reach only
     the main thread: from any thread, pass ``cancel`` (a :class:`threading.Event`);
     once it is set the render stops the same way and raises :class:`RenderCancelled`.
+    ``progress`` (see :data:`ProgressCallback`) is told how far the render is.
     """
     tolerance, threads, layers = _checked_overrides(tolerance, threads, layers)
-    images, report_json = _render(as_scene(scene), tolerance, threads, layers, cancel)
+    images, report_json = _render(as_scene(scene), tolerance, threads, layers, cancel, progress)
     return dict(images), json.loads(report_json)
 
 
@@ -163,11 +174,13 @@ def render_to_files(
     tolerance: float | None = None,
     threads: int | None = None,
     cancel: CancelEvent | None = None,
+    progress: ProgressCallback | None = None,
 ) -> dict[str, Any]:
     """Render and write a multi-layer EXR to ``out`` (atomically), the report JSON and a PNG preview if asked.
 
     Interruptible as :func:`render`: interrupted before its images are complete it writes
     no file; while writing, only the files already complete remain (each is written atomically).
+    ``progress`` as in :func:`render`.
     """
     tolerance, threads, _ = _checked_overrides(tolerance, threads, None)
     report_json = _render_to_files(
@@ -178,6 +191,7 @@ def render_to_files(
         tolerance,
         threads,
         cancel,
+        progress,
     )
     return json.loads(report_json)
 

@@ -1,3 +1,4 @@
+from collections.abc import Callable
 from os import PathLike
 from typing import Protocol
 
@@ -29,6 +30,7 @@ def render(
     threads: int | None = None,
     layers: list[str] | None = None,
     cancel: _CancelEvent | None = None,
+    progress: Callable[[str, int, int], object] | None = None,
 ) -> tuple[dict[str, np.ndarray], str]: ...
 def render_to_files(
     scene: Scene,
@@ -38,6 +40,7 @@ def render_to_files(
     tolerance: float | None = None,
     threads: int | None = None,
     cancel: _CancelEvent | None = None,
+    progress: Callable[[str, int, int], object] | None = None,
 ) -> str: ...
 def scene_schema() -> str: ...
 def cli_main(argv: list[str]) -> int: ...

@@ -221,6 +221,8 @@ pub(crate) struct AdaptiveFilterJob<'a> {
     /// Set by another thread to stop: tiles not yet started are skipped
     /// (the caller then discards the result).
     pub cancel: Option<&'a std::sync::atomic::AtomicBool>,
+    /// Called with `(pixels done, pixels flagged)` after each tile.
+    pub progress: &'a (dyn Fn(usize, usize) + Sync),
 }
 
 /// Totals of a [`filter_adaptive`] run.
@@ -906,6 +908,7 @@ pub(crate) fn filter_adaptive<S: FilterSample>(
     let mut groups: Vec<Vec<usize>> = tiles.into_values().collect();
     // Largest tiles first, so the threads finish together.
     groups.sort_by_key(|g| std::cmp::Reverse(g.len()));
+    let pixels_done = std::sync::atomic::AtomicUsize::new(0);
     // Each worker keeps one lattice and reuses its buffers from tile to tile
     // (a sample is ~1 kB: fresh buffers per tile cost more in page faults
     // than the view rays).
@@ -934,6 +937,8 @@ pub(crate) fn filter_adaptive<S: FilterSample>(
                 lattice.cells.clear();
                 lattice.roots.clear();
                 let out = lattice.run(pixels);
+                let done = pixels_done.fetch_add(pixels.len(), std::sync::atomic::Ordering::Relaxed) + pixels.len();
+                (job.progress)(done, flagged.len());
                 let stats = AdaptiveFilterStats {
                     samples: lattice.samples.len() as u64,
                     cells: lattice.cells.len() as u64,
@@ -1030,6 +1035,7 @@ mod adaptive_tests {
         let scale_of = |i: usize| toy_window_max(f, i);
         let job = AdaptiveFilterJob {
             cancel: None,
+            progress: &|_, _| {},
             filter: PixelFilter::default(),
             width: w,
             height: h,
