@@ -5,8 +5,8 @@
 modal timer (progress in the status bar, Esc cancels), with EXEC_DEFAULT to completion
 before returning. Only the main thread touches bpy: gathering happens before the job
 starts, committing files and applying results after it is done. Esc stops waiting and
-sets the job's stop event: the volumetrics render stops within about a view ray's time
-(the sky, well under a second, runs on), and the staged files are deleted.
+sets the job's stop event: the volumetrics render stops within about a view ray's time,
+the sky within one round of its grid or one row, and the staged files are deleted.
 """
 
 from __future__ import annotations

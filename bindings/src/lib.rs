@@ -116,7 +116,7 @@ fn interruptible<T: Send + 'static>(
     let join = |worker: std::thread::JoinHandle<T>| {
         worker
             .join()
-            .map_err(|_| RenderFailed::new_err("the render thread panicked (a bug: please report the scene)"))
+            .map_err(|_| RenderFailed::new_err("the render thread panicked (a bug: please report what was rendered)"))
     };
     loop {
         let done = py.detach(|| {
@@ -446,7 +446,14 @@ fn sky<'py>(
             render(&params)
         }
     })?;
-    let (tex, report) = rendered.ok_or_else(|| RenderCancelled::new_err("the sky was cancelled (its cancel event was set)"))?;
+    let cancelled = || RenderCancelled::new_err("the sky was cancelled (its cancel event was set)");
+    let (tex, report) = rendered.ok_or_else(cancelled)?;
+    // An event set after the build's last check: still nothing is returned or written.
+    if let Some(event) = &cancel
+        && event.call_method0("is_set")?.is_truthy()?
+    {
+        return Err(cancelled());
+    }
     if let Some(path) = out {
         let written = py.detach(|| {
             tyndall_core::io::write_rgb_exr(&path, tex.width, tex.height, &tex.rgb).map_err(|e| e.to_string())?;

@@ -136,3 +136,57 @@ fn a_sky_stops_when_its_flag_is_set() {
     // Not a timing target: far above the 0.01–0.4 s measured, below the sky's own time.
     assert!(set_at < Duration::from_secs(2), "stopped {set_at:?} after the flag was set");
 }
+
+#[test]
+fn a_sky_cancelled_and_then_uncancelled_returns_nothing_or_all_of_it() {
+    // A flag set and cleared again while a sky is built: once seen, a cancel
+    // stays seen, so the result is either none or the whole sky (the review
+    // of the cancel found 9 of 200 such builds returning a partial sky).
+    use tyndall_core::sky::{
+        atmosphere::AtmosphereParams,
+        render_world, render_world_cancellable,
+        texture::{BuildOptions, TextureSettings},
+    };
+    let params = AtmosphereParams {
+        sun_elevation_rad: 10f64.to_radians(),
+        ..Default::default()
+    };
+    let settings = TextureSettings {
+        width: 64,
+        tolerance: 1e-3,
+        sun_disc: true,
+    };
+    let (reference, _) = render_world(&params, "atmosphere", &settings);
+    let flag = AtomicBool::new(false);
+    let running = AtomicBool::new(true);
+    let (mut none, mut whole) = (0, 0);
+    // Stops the flag's thread however the builds end (a failed assert
+    // inside the scope would otherwise wait for it forever).
+    struct Stop<'a>(&'a AtomicBool);
+    impl Drop for Stop<'_> {
+        fn drop(&mut self) {
+            self.0.store(false, Ordering::Relaxed);
+        }
+    }
+    std::thread::scope(|s| {
+        let _stop = Stop(&running);
+        s.spawn(|| {
+            while running.load(Ordering::Relaxed) {
+                flag.store(true, Ordering::Relaxed);
+                std::thread::sleep(Duration::from_micros(300));
+                flag.store(false, Ordering::Relaxed);
+                std::thread::sleep(Duration::from_micros(700));
+            }
+        });
+        for _ in 0..200 {
+            match render_world_cancellable(&params, "atmosphere", &settings, &BuildOptions::default(), Some(&flag)) {
+                None => none += 1,
+                Some((tex, _)) => {
+                    assert_eq!(tex.rgb, reference.rgb, "a partial sky came back");
+                    whole += 1;
+                }
+            }
+        }
+    });
+    assert!(none > 0, "the flag was never seen ({whole} whole)");
+}

@@ -294,6 +294,14 @@ pub struct DiscPhase {
 
 const U_MAX: f64 = std::f64::consts::SQRT_2;
 
+/// A cell left unrefined short of the tolerance (node budget, width floor)
+/// is charged this many times its midpoint mismatch: the mismatch estimates,
+/// it does not bound, and filling the worst cells first leaves many near the
+/// limit (HG g = 0.9999 asked for 2.5e-9: 1.15e-8 mismatch, 1.58e-8 found by
+/// dense sampling beside the rim). Cells that meet the tolerance were within
+/// 0.3× of it in the same sampling.
+const UNMET_FACTOR: f64 = 2.0;
+
 /// A table cell that failed its midpoint test, ordered by its mismatch.
 struct PendingCell {
     mismatch: f64,
@@ -385,7 +393,7 @@ impl DiscPhase {
                 return;
             }
             if ub - ua <= Self::MIN_CELL {
-                *table_error = table_error.max(mismatch);
+                *table_error = table_error.max(UNMET_FACTOR * mismatch);
             } else {
                 pending.push(PendingCell {
                     mismatch,
@@ -403,7 +411,7 @@ impl DiscPhase {
             if points.len() + 2 > Self::MAX_NODES {
                 // Out of budget: this cell and every one still waiting (none
                 // worse) stay as they are.
-                table_error = table_error.max(cell.mismatch);
+                table_error = table_error.max(UNMET_FACTOR * cell.mismatch);
                 break;
             }
             let [(ua, fa), (um, fm), (ub, fb)] = cell.ends;
@@ -698,24 +706,23 @@ mod tests {
     fn a_disc_table_out_of_budget_spreads_its_error_and_says_so() {
         // Linear interpolation of HG g = 0.9999 to 2.5e-9 would need about 10⁶
         // nodes; the budget is 2¹⁸. The budget goes to the worst cells first,
-        // so what is left is near what 2¹⁸ nodes can reach (1.1e-8 measured;
-        // refining left to right it ended at 7.9e-2, the last cells left coarse).
+        // so what is left is near what 2¹⁸ nodes can reach (2.3e-8 reported,
+        // twice the largest mismatch; refining left to right it ended at 7.9e-2,
+        // the last cells left coarse).
         let r = 0.5 * 0.526f64.to_radians();
         let p = PhaseFunction::HenyeyGreenstein { g: 0.9999 };
         let t = DiscPhase::build(p, r, 2.5e-9);
         assert!(t.len() <= DiscPhase::MAX_NODES, "{} nodes", t.len());
         assert!(t.table_error() > 2.5e-9 && t.table_error() < 1e-7, "{}", t.table_error());
-        // And the reported error holds, across the sphere and densely at the rim
-        // (the same factor 2 as the tests above: the midpoint test is a heuristic).
-        let rim = (0..1000).map(|i| r * (0.9 + 0.2 * i as f64 / 999.0));
+        // And the reported error holds, across the sphere and densely at the rim.
+        // (Without the factor 2 on cells left short, 1.15e-8 was reported and
+        // 1.58e-8 found here, at θ = 0.9998 r.)
+        let rim = (0..4000).map(|i| r * (0.98 + 0.04 * i as f64 / 3999.0));
         let spread = (0..1000).map(|i| PI * (i as f64 / 999.0).powi(3));
         for theta in rim.chain(spread) {
             let direct = p.disc_average(theta, r);
             let tab = t.eval(theta.cos());
-            assert!(
-                (tab - direct).abs() <= 2.0 * t.table_error() * direct,
-                "θ={theta}: {tab} vs {direct}"
-            );
+            assert!((tab - direct).abs() <= t.table_error() * direct, "θ={theta}: {tab} vs {direct}");
         }
     }
 
@@ -726,12 +733,13 @@ mod tests {
         let asked = std::cell::Cell::new(0u32);
         let stop = || {
             asked.set(asked.get() + 1);
-            asked.get() >= 3
+            asked.get() >= 20
         };
-        // Asked every 64 averages: it gives up at the third question, long
-        // before the table's ≈ 1 900 nodes.
+        // Asked every 64 averages: it gives up at the 20th question (average
+        // 1 280), inside the worst-first refinement (the first 515 averages are
+        // the initial cells), before the table's ≈ 1 900 nodes are done.
         assert!(DiscPhase::build_unless(p, r, 2.5e-4, &stop).is_none());
-        assert_eq!(asked.get(), 3);
+        assert_eq!(asked.get(), 20);
         assert_eq!(
             DiscPhase::build_unless(p, r, 2.5e-4, &|| false),
             Some(DiscPhase::build(p, r, 2.5e-4))

@@ -1599,7 +1599,16 @@ pub fn build_world_texture_cancellable(
     options: &BuildOptions,
     cancel: Option<&std::sync::atomic::AtomicBool>,
 ) -> Option<WorldTexture> {
-    let cancelled = || cancel.is_some_and(|c| c.load(std::sync::atomic::Ordering::Relaxed));
+    // Latched: once seen, a cancel stays seen (a flag cleared again must not
+    // let a half left unfinished be used).
+    let seen = std::sync::atomic::AtomicBool::new(false);
+    let cancelled = || {
+        use std::sync::atomic::Ordering::Relaxed;
+        if !seen.load(Relaxed) && cancel.is_some_and(|c| c.load(Relaxed)) {
+            seen.store(true, Relaxed);
+        }
+        seen.load(Relaxed)
+    };
     let width = settings.width.max(2);
     let height = (width / 2).max(1);
     let sun = model.sun_direction();
@@ -1611,6 +1620,9 @@ pub fn build_world_texture_cancellable(
         DVec3::new(st * phi.cos(), st * phi.sin(), ct)
     };
     if let Integrator::KlassenCoherence { threshold } = options.integrator {
+        if cancelled() {
+            return None;
+        }
         return Some(build_coherence(model, settings, threshold)).filter(|_| !cancelled());
     }
     let (rgb_path, decision) = decide_colour(model, tol, options.colour);
