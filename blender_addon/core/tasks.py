@@ -63,11 +63,16 @@ def volumetrics_work(
     scene = resolve_ies_paths(built.scene, staging.path)
     progress(0.1, "rendering volumetrics")
 
+    # Rows first (all the time without the pixel filter), then the filtered pixels (most
+    # of the time where the filter runs): 10–40 % and 40–95 % of the bar. A stage not
+    # listed keeps the bar where it is.
+    bands = {"rendering rows": ("rows", 0.1, 0.3), "pixel filter": ("pixel filter", 0.4, 0.55)}
+    at = [0.1]
+
     def render_progress(stage: str, done: int, total: int) -> None:
-        # Rows first (all the time without the pixel filter), then the filtered pixels
-        # (most of the time where the filter runs): 10–40 % and 40–95 % of the bar.
-        start, span = (0.1, 0.3) if stage == "rendering rows" else (0.4, 0.55)
-        progress(start + span * (done / total if total else 1.0), f"rendering volumetrics: {stage} {done}/{total}")
+        name, start, span = bands.get(stage, (stage, at[0], 0.0))
+        at[0] = start + span * (done / total if total else 1.0)
+        progress(at[0], f"rendering volumetrics: {name} {done}/{total}")
 
     report = tyndall.render_to_files(
         scene,

@@ -19,15 +19,15 @@ fn progress_counts_rows_then_filtered_pixels() {
     let calls = calls.into_inner().unwrap();
     let rows: Vec<_> = calls.iter().filter(|c| c.0 == RenderStage::Rows).collect();
     let filter: Vec<_> = calls.iter().filter(|c| c.0 == RenderStage::PixelFilter).collect();
-    // One call per row, the last row's count is the height.
-    assert_eq!(rows.len(), 36);
+    // One call per row, in order (calls come one at a time, counted under a lock).
+    assert_eq!(rows.iter().map(|c| c.1).collect::<Vec<_>>(), (1..=36).collect::<Vec<_>>());
     assert!(rows.iter().all(|c| c.2 == 36));
-    assert_eq!(rows.iter().map(|c| c.1).max(), Some(36));
-    // Then the filtered pixels, in tiles, up to the count the report gives.
+    // Then the filtered pixels, in tiles, rising to the count the report gives.
     let edge = report.error.edge_pixels as usize;
     assert!(edge > 0, "the stage has filtered pixels");
     assert!(!filter.is_empty() && filter.iter().all(|c| c.2 == edge));
-    assert_eq!(filter.iter().map(|c| c.1).max(), Some(edge));
+    assert!(filter.windows(2).all(|w| w[0].1 < w[1].1), "the filter's count went down");
+    assert_eq!(filter.last().map(|c| c.1), Some(edge));
     let first_filter = calls.iter().position(|c| c.0 == RenderStage::PixelFilter).unwrap();
     assert!(
         calls[first_filter..].iter().all(|c| c.0 == RenderStage::PixelFilter),

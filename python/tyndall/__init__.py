@@ -47,10 +47,13 @@ class CancelEvent(Protocol):
 
 ProgressCallback = Callable[[str, int, int], object]
 """What ``progress=`` takes: called as ``progress(stage, done, total)`` on the calling
-thread, at most every 50 ms and once at the end. ``stage`` is ``"rendering rows"``
-(``done``/``total`` count image rows) and then, where pixels need Blender's pixel filter
-integral, ``"pixel filter"`` (they count those pixels; where it runs, this stage is most
-of the time). An exception it raises stops the render and comes out of the call."""
+thread with the latest state when it changed, at most every 50 ms, and once more when the
+render has finished (then ``done == total`` of the last stage). ``stage`` is
+``"rendering rows"`` (``done``/``total`` count image rows) and then, where pixels need
+Blender's pixel filter integral, ``"pixel filter"`` (they count those pixels; where it
+runs, this stage is most of the time). An exception it raises while the render runs stops
+the render and comes out of the call; one raised by the last call comes out too, though
+the render had finished (and ``render_to_files`` had written its files)."""
 
 __all__ = [
     "CancelEvent",

@@ -908,7 +908,9 @@ pub(crate) fn filter_adaptive<S: FilterSample>(
     let mut groups: Vec<Vec<usize>> = tiles.into_values().collect();
     // Largest tiles first, so the threads finish together.
     groups.sort_by_key(|g| std::cmp::Reverse(g.len()));
-    let pixels_done = std::sync::atomic::AtomicUsize::new(0);
+    // Pixels done; counted and reported under one lock, so that the calls
+    // arrive in order and the last reports the total.
+    let pixels_done = std::sync::Mutex::new(0usize);
     // Each worker keeps one lattice and reuses its buffers from tile to tile
     // (a sample is ~1 kB: fresh buffers per tile cost more in page faults
     // than the view rays).
@@ -937,8 +939,10 @@ pub(crate) fn filter_adaptive<S: FilterSample>(
                 lattice.cells.clear();
                 lattice.roots.clear();
                 let out = lattice.run(pixels);
-                let done = pixels_done.fetch_add(pixels.len(), std::sync::atomic::Ordering::Relaxed) + pixels.len();
-                (job.progress)(done, flagged.len());
+                let mut done = pixels_done.lock().unwrap_or_else(|e| e.into_inner());
+                *done += pixels.len();
+                (job.progress)(*done, flagged.len());
+                drop(done);
                 let stats = AdaptiveFilterStats {
                     samples: lattice.samples.len() as u64,
                     cells: lattice.cells.len() as u64,

@@ -45,7 +45,7 @@ use crate::scene::{
 use crate::spectrum::{self, SPECTRAL_SAMPLES};
 use glam::DVec3;
 use rayon::prelude::*;
-use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Instant;
 
 /// Depth written where a view ray meets no surface (Blender's convention).
@@ -178,7 +178,8 @@ impl RenderStage {
     }
 }
 
-/// Progress callback: `(stage, done, total)`; called from worker threads.
+/// Progress callback: `(stage, done, total)`; called from worker threads,
+/// one call at a time and in order (`done` rises to `total` in each stage).
 pub type Progress<'a> = &'a (dyn Fn(RenderStage, usize, usize) + Sync);
 
 /// Renders a validated scene.
@@ -1787,7 +1788,9 @@ fn render_channels<const C: usize, const K: usize>(
     let max_of = |e: &[f32; 3]| e[0].max(e[1]).max(e[2]);
     let (t_chunk, d_chunk) = (if need_t { w } else { 1 }, if want_depth { w } else { 1 });
     let smooth_chunk = if smooth_on { w } else { 1 };
-    let done = AtomicUsize::new(0);
+    // Rows done; the count and the callback under one lock, so that the
+    // calls arrive in order and the last reports the total.
+    let done = std::sync::Mutex::new(0usize);
     // Per row: its stats, and the per-light in-scatter and surface-transmittance rows.
     type RowOut = (RowStats, Vec<[f32; 3]>, Vec<[f32; 3]>);
     let row_stats: Vec<RowOut> = inscatter
@@ -1849,9 +1852,10 @@ fn render_channels<const C: usize, const K: usize>(
                 }
                 st.add(&s);
             }
-            let d = done.fetch_add(1, Ordering::Relaxed) + 1;
             if let Some(cb) = progress {
-                cb(RenderStage::Rows, d, h);
+                let mut d = done.lock().unwrap_or_else(|e| e.into_inner());
+                *d += 1;
+                cb(RenderStage::Rows, *d, h);
             }
             (st, light_row, surface_row)
         })
