@@ -6,6 +6,11 @@ use std::path::Path;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
 use tyndall_core::render::RenderError;
+use tyndall_core::sky::{
+    atmosphere::AtmosphereParams,
+    render_world, render_world_cancellable,
+    texture::{BuildOptions, TextureSettings},
+};
 use tyndall_core::{Scene, render, render_cancellable};
 
 fn stage(width: u32, height: u32, tolerance: f64) -> Scene {
@@ -94,22 +99,23 @@ fn a_flag_set_while_a_sun_disc_table_is_built_cancels_it() {
     );
 }
 
-#[test]
-fn a_sky_stops_when_its_flag_is_set() {
-    use tyndall_core::sky::{
-        atmosphere::AtmosphereParams,
-        render_world, render_world_cancellable,
-        texture::{BuildOptions, TextureSettings},
-    };
+/// The atmosphere with the sun 10° up, and a texture `width` px wide at `tolerance`.
+fn sky_at_10_degrees(width: usize, tolerance: f64) -> (AtmosphereParams, TextureSettings) {
     let params = AtmosphereParams {
         sun_elevation_rad: 10f64.to_radians(),
         ..Default::default()
     };
     let settings = TextureSettings {
-        width: 64,
-        tolerance: 1e-3,
+        width,
+        tolerance,
         sun_disc: true,
     };
+    (params, settings)
+}
+
+#[test]
+fn a_sky_stops_when_its_flag_is_set() {
+    let (params, settings) = sky_at_10_degrees(64, 1e-3);
     let options = BuildOptions::default();
     let set = AtomicBool::new(true);
     assert!(render_world_cancellable(&params, "atmosphere", &settings, &options, Some(&set)).is_none());
@@ -118,11 +124,7 @@ fn a_sky_stops_when_its_flag_is_set() {
     let (b, _) = render_world(&params, "atmosphere", &settings);
     assert_eq!(a.rgb, b.rgb);
     // Set while a large sky is built (8192 px at 1e-6: ≈ 3 s in a release build).
-    let big = TextureSettings {
-        width: 8192,
-        tolerance: 1e-6,
-        sun_disc: true,
-    };
+    let (_, big) = sky_at_10_degrees(8192, 1e-6);
     let flag = AtomicBool::new(false);
     let set_at = std::thread::scope(|s| {
         let setter = s.spawn(|| {
@@ -142,20 +144,7 @@ fn a_sky_cancelled_and_then_uncancelled_returns_nothing_or_all_of_it() {
     // A flag set and cleared again while a sky is built: once seen, a cancel
     // stays seen, so the result is either none or the whole sky (the review
     // of the cancel found 9 of 200 such builds returning a partial sky).
-    use tyndall_core::sky::{
-        atmosphere::AtmosphereParams,
-        render_world, render_world_cancellable,
-        texture::{BuildOptions, TextureSettings},
-    };
-    let params = AtmosphereParams {
-        sun_elevation_rad: 10f64.to_radians(),
-        ..Default::default()
-    };
-    let settings = TextureSettings {
-        width: 64,
-        tolerance: 1e-3,
-        sun_disc: true,
-    };
+    let (params, settings) = sky_at_10_degrees(64, 1e-3);
     let (reference, _) = render_world(&params, "atmosphere", &settings);
     let flag = AtomicBool::new(false);
     let running = AtomicBool::new(true);
