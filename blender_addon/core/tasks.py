@@ -67,12 +67,13 @@ def volumetrics_work(
     # of the time where the filter runs): 10–40 % and 40–95 % of the bar. A stage not
     # listed keeps the bar where it is.
     bands = {"rendering rows": ("rows", 0.1, 0.3), "pixel filter": ("pixel filter", 0.4, 0.55)}
-    at = [0.1]
+    at = 0.1
 
     def render_progress(stage: str, done: int, total: int) -> None:
-        name, start, span = bands.get(stage, (stage, at[0], 0.0))
-        at[0] = start + span * (done / total if total else 1.0)
-        progress(at[0], f"rendering volumetrics: {name} {done}/{total}")
+        nonlocal at
+        name, start, span = bands.get(stage, (stage, at, 0.0))
+        at = start + span * (done / total if total else 1.0)
+        progress(at, f"rendering volumetrics: {name} {done}/{total}")
 
     report = tyndall.render_to_files(
         scene,

@@ -267,14 +267,14 @@ impl PhaseFunction {
 /// sun as a point would exceed the tolerance.
 ///
 /// The nodes are placed adaptively: starting from 256 uniform cells plus the
-/// disc's rim, a cell is halved until linear interpolation matches
-/// [`PhaseFunction::disc_average`] at its midpoint to `rel_tol`. A lobe much
+/// disc's rim, cells are halved, the worst first, until linear interpolation
+/// matches [`PhaseFunction::disc_average`] at each midpoint to `rel_tol`. A lobe much
 /// narrower than the disc (HG g = 0.9999: width 1e-4 rad against a 4.6e-3 rad
 /// radius) turns the average into a plateau with a steep rim; the nodes crowd
 /// there instead of refining the whole range (a uniform grid would need about
 /// 10⁶ nodes). Cells are not split below [`DiscPhase::MIN_CELL`] in u nor past
-/// [`DiscPhase::MAX_NODES`]; where that stops a cell short of `rel_tol`, its
-/// midpoint mismatch is kept in
+/// [`DiscPhase::MAX_NODES`]; where that stops a cell short of `rel_tol`, twice
+/// its midpoint mismatch (`UNMET_FACTOR`) is kept in
 /// [`DiscPhase::table_error`], which the render reports.
 /// A lookup is one square root, a bucket index and a short binary search.
 #[derive(Debug, Clone, PartialEq)]
@@ -329,8 +329,8 @@ impl Ord for PendingCell {
 impl DiscPhase {
     /// Narrowest cell in u (≈ 1.4e-9 rad in angle near the sun).
     pub const MIN_CELL: f64 = 1e-9;
-    /// Node budget: past it every remaining cell is accepted as it is and its
-    /// mismatch goes into [`DiscPhase::table_error`].
+    /// Node budget: past it every remaining cell is accepted as it is and twice
+    /// the largest mismatch among them goes into [`DiscPhase::table_error`].
     pub const MAX_NODES: usize = 1 << 18;
     /// Finest relative tolerance a table is built to (a tighter request gets
     /// this, and [`DiscPhase::table_error`] says so).
@@ -380,8 +380,8 @@ impl DiscPhase {
         // halved first, so a node budget that runs out leaves the error spread
         // evenly (refining depth-first, left to right, spent the budget on the
         // first cells: HG g = 0.9999 asked for 2.5e-9 ended at 7.9e-2).
-        let mut pending = std::collections::BinaryHeap::new();
         type Heap = std::collections::BinaryHeap<PendingCell>;
+        let mut pending = Heap::new();
         let test = |ua: f64, fa: f64, ub: f64, fb: f64, points: &mut Vec<(f64, f64)>, table_error: &mut f64, pending: &mut Heap| {
             let um = 0.5 * (ua + ub);
             let fm = f(um);

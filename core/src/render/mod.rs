@@ -164,7 +164,8 @@ pub enum RenderStage {
     Rows,
     /// The pixels integrated against the pixel filter (`done` and `total`
     /// count pixels; they come in tiles, and where the filter is used it is
-    /// most of the time: 8 of 8.2 s for the demo stage at 640×360, 1e-3).
+    /// most of the time: 8.0 of 8.2 s for the demo stage at 640×360, 1e-3, in
+    /// the fifteenth session's measurement).
     PixelFilter,
 }
 

@@ -1623,7 +1623,8 @@ pub fn build_world_texture_cancellable(
         if cancelled() {
             return None;
         }
-        return Some(build_coherence(model, settings, threshold)).filter(|_| !cancelled());
+        let tex = build_coherence(model, settings, threshold);
+        return (!cancelled()).then_some(tex);
     }
     let (rgb_path, decision) = decide_colour(model, tol, options.colour);
     let grid_tol = GRID_TOLERANCE_FRACTION * tol;
