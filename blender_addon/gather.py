@@ -268,8 +268,8 @@ def gather_meshes(scene: bpy.types.Scene, depsgraph: bpy.types.Depsgraph) -> lis
             out.append(
                 MeshData(
                     name=obj.name,
-                    positions=[tuple(p) for p in co.reshape(-1, 3).tolist()],
-                    triangles=[tuple(t) for t in tri.reshape(-1, 3).tolist()],
+                    positions=co.reshape(-1, 3),
+                    triangles=tri.reshape(-1, 3),
                     matrix=_rows(ev.matrix_world),
                 )
             )

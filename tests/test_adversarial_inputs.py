@@ -11,6 +11,7 @@ import math
 import subprocess
 import sys
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -78,6 +79,58 @@ def test_non_finite_numbers_in_a_dict_name_the_field(bad: float) -> None:
     with pytest.raises(tyndall.SceneFormatError, match="must be a finite number") as err:
         tyndall.render(scene)
     assert err.value.path == "lights[0].position[1]"
+
+
+def _box_arrays() -> tuple[np.ndarray, np.ndarray]:
+    """A 1 m cube on the floor (8 vertices, 12 triangles) as numpy arrays."""
+    v = np.array([(x, y, z) for x in (-0.5, 0.5) for y in (-0.5, 0.5) for z in (0.0, 1.0)], dtype=np.float32)
+    quads = [(0, 1, 3, 2), (4, 6, 7, 5), (0, 4, 5, 1), (2, 3, 7, 6), (0, 2, 6, 4), (1, 5, 7, 3)]
+    t = np.array([tri for a, b, c, d in quads for tri in ((a, b, c), (a, c, d))], dtype=np.int64)
+    return v, t
+
+
+def test_numpy_mesh_arrays_load_as_the_same_scene() -> None:
+    """Meshes given as numpy arrays skip the JSON text (a million triangles took
+    seconds to print and parse) and load to the same scene as lists; numpy scalars
+    and arrays elsewhere stand for numbers and lists."""
+    v, t = _box_arrays()
+    as_lists = spot_stage(100.0)
+    as_lists["meshes"].append({"name": "box", "positions": v.tolist(), "triangles": t.tolist()})
+    as_arrays = spot_stage(np.float64(100.0))
+    as_arrays["meshes"].append({"name": "box", "positions": v, "triangles": t.astype(np.uint32)})
+    as_arrays["lights"][0]["position"] = np.array([0, 0, 4])
+    as_arrays["output"]["tolerance"] = np.float64(1e-2)
+    assert tyndall.as_scene(as_arrays).to_json() == tyndall.as_scene(as_lists).to_json()
+    # Fortran order and a strided view are copied into place, not misread.
+    as_arrays["meshes"][1]["positions"] = np.asfortranarray(v.astype(np.float64))
+    as_arrays["meshes"][1]["triangles"] = np.concatenate([t, t], axis=1)[:, :3]
+    assert tyndall.as_scene(as_arrays).to_json() == tyndall.as_scene(as_lists).to_json()
+    a, _ = tyndall.render(as_arrays)
+    b, _ = tyndall.render(as_lists)
+    assert np.array_equal(a["inscatter"], b["inscatter"])
+
+
+@pytest.mark.parametrize(
+    ("change", "path", "message"),
+    [
+        (lambda v, t: (np.where(np.arange(24).reshape(8, 3) == 7, np.nan, v), t), "meshes[1].positions[2][1]",
+         "must be a finite number, got nan"),
+        (lambda v, t: (v[:, :2], t), "meshes[1].positions", r"shape \(n, 3\), got shape \(8, 2\)"),
+        (lambda v, t: (v, t.astype(np.float64)), "meshes[1].triangles", "expected integers"),
+        (lambda v, t: (v, np.where(t == 5, -1, t)), "meshes[1].triangles[3][2]", "must be in 0..2"),
+        (lambda v, t: (v.astype(bool), t), "meshes[1].positions", "expected numbers"),
+        (lambda v, t: (v, np.where(t == 5, 8, t)), "meshes[1].triangles[3][2]", "8"),
+    ],
+)
+def test_bad_numpy_mesh_arrays_name_the_field(change: Any, path: str, message: str) -> None:
+    """The array path checks what the JSON loader would and names the same field
+    (an index past the vertices is the loader's own check, after the arrays are in)."""
+    v, t = change(*_box_arrays())
+    scene = spot_stage(100.0)
+    scene["meshes"].append({"name": "box", "positions": v, "triangles": t})
+    with pytest.raises(tyndall.SceneFormatError, match=message) as err:
+        tyndall.as_scene(scene)
+    assert err.value.path == path
 
 
 @pytest.mark.parametrize(

@@ -4,7 +4,7 @@
 //! work, convert the results: images to numpy arrays, the report to a dict
 //! (through its JSON), errors to Python exceptions. No physics here.
 
-use numpy::{PyArray1, PyArrayMethods};
+use numpy::{PyArray1, PyArrayMethods, PyReadonlyArray2, PyUntypedArrayMethods};
 use pyo3::create_exception;
 use pyo3::exceptions::{PyRuntimeError, PyValueError};
 use pyo3::prelude::*;
@@ -222,11 +222,40 @@ fn load_scene(py: Python<'_>, path: PathBuf) -> PyResult<PyScene> {
     r.map(|inner| PyScene { inner }).map_err(|e| scene_err(py, e))
 }
 
-/// Parses and validates a scene from JSON text.
+/// `(index in meshes, positions, triangles)` from Python.
+type MeshArraysPy<'py> = (usize, PyReadonlyArray2<'py, f64>, PyReadonlyArray2<'py, u32>);
+
+/// Parses and validates a scene from JSON text. `mesh_arrays`: optional
+/// `(i, positions, triangles)` for `meshes[i]`, whose arrays are `[]` in the
+/// text: C-contiguous `float64 (n, 3)` and `uint32 (m, 3)` numpy arrays
+/// (`tyndall.as_scene` checks and converts them).
 #[pyfunction]
-#[pyo3(signature = (text, source_name = "<string>"))]
-fn scene_from_json(py: Python<'_>, text: &str, source_name: &str) -> PyResult<PyScene> {
-    Scene::from_json_str(text, source_name)
+#[pyo3(signature = (text, source_name = "<string>", mesh_arrays = None))]
+fn scene_from_json(py: Python<'_>, text: &str, source_name: &str, mesh_arrays: Option<Vec<MeshArraysPy<'_>>>) -> PyResult<PyScene> {
+    let mut arrays = Vec::new();
+    for (i, positions, triangles) in mesh_arrays.unwrap_or_default() {
+        let rows = |shape: &[usize], what: &str| -> PyResult<()> {
+            if shape.len() == 2 && shape[1] == 3 {
+                Ok(())
+            } else {
+                Err(PyValueError::new_err(format!(
+                    "meshes[{i}].{what}: expected shape (n, 3), got {shape:?}"
+                )))
+            }
+        };
+        rows(positions.shape(), "positions")?;
+        rows(triangles.shape(), "triangles")?;
+        let p = positions
+            .as_slice()
+            .map_err(|e| PyValueError::new_err(format!("meshes[{i}].positions: {e}")))?;
+        let t = triangles
+            .as_slice()
+            .map_err(|e| PyValueError::new_err(format!("meshes[{i}].triangles: {e}")))?;
+        let p: Vec<[f64; 3]> = p.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect();
+        let t: Vec<[u32; 3]> = t.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect();
+        arrays.push((i, p, t));
+    }
+    py.detach(|| Scene::from_json_str_with_meshes(text, source_name, arrays))
         .map(|inner| PyScene { inner })
         .map_err(|e| scene_err(py, e))
 }

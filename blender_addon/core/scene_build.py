@@ -9,10 +9,14 @@ from __future__ import annotations
 
 import math
 import os
+from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from . import conversions as cv
+
+if TYPE_CHECKING:
+    import numpy as np
 
 DEFAULT_LAYERS: tuple[str, ...] = (
     "inscatter",
@@ -96,8 +100,10 @@ class MeshData:
     """An evaluated mesh (occluder) in object space with its world matrix."""
 
     name: str
-    positions: list[tuple[float, float, float]]
-    triangles: list[tuple[int, int, int]]
+    #: ``(n, 3)`` vertex positions; a numpy array from Blender (it reaches Tyndall as one).
+    positions: np.ndarray | Sequence[Sequence[float]]
+    #: ``(m, 3)`` vertex indices.
+    triangles: np.ndarray | Sequence[Sequence[int]]
     matrix: list[list[float]]
 
 
@@ -303,13 +309,13 @@ def build_scene(data: SceneData) -> BuiltScene:
 
     meshes = []
     for mesh in data.meshes:
-        if not mesh.triangles:
+        if len(mesh.triangles) == 0:
             continue
         meshes.append(
             {
                 "name": mesh.name,
-                "positions": [list(p) for p in mesh.positions],
-                "triangles": [list(t) for t in mesh.triangles],
+                "positions": mesh.positions,
+                "triangles": mesh.triangles,
                 "transform": {"matrix": _scaled_rows(mesh.matrix, s)},
             }
         )

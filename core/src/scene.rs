@@ -281,6 +281,10 @@ pub enum LightSpectrum {
     Solar,
 }
 
+/// A mesh's `(index in meshes, positions, triangles)` given apart from the
+/// scene's JSON text ([`Scene::from_json_str_with_meshes`]).
+pub type MeshArrays = (usize, Vec<[f64; 3]>, Vec<[u32; 3]>);
+
 /// A light. JSON: `{"type": "sun" | "ambient" | "point" | "spot" | "window", ...}`.
 #[derive(Debug, Clone, PartialEq, Serialize, JsonSchema)]
 #[serde(tag = "type", rename_all = "snake_case")]
@@ -969,8 +973,18 @@ fn default_true() -> bool {
 impl Scene {
     /// Parses and validates a scene from JSON text; `source_name` names it in errors.
     pub fn from_json_str(text: &str, source_name: &str) -> Result<Scene, SceneError> {
+        Self::from_json_str_with_meshes(text, source_name, Vec::new())
+    }
+
+    /// [`Scene::from_json_str`] whose meshes' vertex and index arrays may come
+    /// apart from the text: each `(i, positions, triangles)` replaces the arrays
+    /// of `meshes[i]` (given as `[]` in the text) before the scene is validated,
+    /// so errors name the same fields. A million-triangle mesh is ≈ 50 MB of
+    /// JSON whose printing and parsing took longer than rendering it (the
+    /// Python bindings pass numpy arrays this way).
+    pub fn from_json_str_with_meshes(text: &str, source_name: &str, arrays: Vec<MeshArrays>) -> Result<Scene, SceneError> {
         let de = &mut serde_json::Deserializer::from_str(text);
-        let scene: Scene = serde_path_to_error::deserialize(de).map_err(|e| {
+        let mut scene: Scene = serde_path_to_error::deserialize(de).map_err(|e| {
             let mut path = e.path().to_string();
             let mut message = e.into_inner().to_string();
             // Paths from inside tagged objects arrive as MARK path MARK message.
@@ -994,6 +1008,25 @@ impl Scene {
                 message,
             }
         })?;
+        for (i, positions, triangles) in arrays {
+            let n = scene.meshes.len();
+            let Some(mesh) = scene.meshes.get_mut(i) else {
+                return Err(SceneError {
+                    source_name: source_name.to_string(),
+                    path: "meshes".into(),
+                    message: format!("arrays were given for meshes[{i}], but the scene has {n} meshes"),
+                });
+            };
+            if !mesh.positions.is_empty() || !mesh.triangles.is_empty() {
+                return Err(SceneError {
+                    source_name: source_name.to_string(),
+                    path: format!("meshes[{i}]"),
+                    message: "positions and triangles are given both in the text and as arrays".into(),
+                });
+            }
+            mesh.positions = positions;
+            mesh.triangles = triangles;
+        }
         scene.validate().map_err(|(path, message)| SceneError {
             source_name: source_name.to_string(),
             path,
@@ -1799,5 +1832,33 @@ mod tests {
         ] {
             Scene::from_json_str(text, name).unwrap_or_else(|e| panic!("{e}"));
         }
+    }
+
+    #[test]
+    fn mesh_arrays_apart_from_the_text_load_as_the_text_would() {
+        let scene = |meshes: &str| {
+            format!(
+                r#"{{"version": 1, "camera": {{"type": "perspective", "position": [0, -5, 1], "orientation": {{"look_at": {{"target": [0, 0, 1]}}}}, "resolution": [8, 4]}},
+                "meshes": {meshes}, "lights": [{{"type": "point", "position": [0, 0, 3], "power_w": 10}}],
+                "media": [{{"type": "homogeneous", "scattering": 0.1}}]}}"#
+            )
+        };
+        let positions = vec![[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]];
+        let text = scene(r#"[{"name": "tri", "positions": [[0, 0, 0], [1, 0, 0], [0, 1, 0]], "triangles": [[0, 1, 2]]}]"#);
+        let whole = Scene::from_json_str(&text, "text").unwrap();
+        let apart = scene(r#"[{"name": "tri", "positions": [], "triangles": []}]"#);
+        let arrays = |t: [u32; 3]| vec![(0, positions.clone(), vec![t])];
+        assert_eq!(
+            Scene::from_json_str_with_meshes(&apart, "arrays", arrays([0, 1, 2])).unwrap(),
+            whole
+        );
+        // The arrays are validated with the scene: the same field is named.
+        let e = Scene::from_json_str_with_meshes(&apart, "arrays", arrays([0, 1, 3])).unwrap_err();
+        assert_eq!(e.path, "meshes[0].triangles[0][2]", "{e}");
+        // Arrays for a mesh that is not there, or given twice.
+        let e = Scene::from_json_str_with_meshes(&apart, "arrays", vec![(1, positions.clone(), vec![[0, 1, 2]])]).unwrap_err();
+        assert!(e.path == "meshes" && e.message.contains("meshes[1]"), "{e}");
+        let e = Scene::from_json_str_with_meshes(&text, "arrays", arrays([0, 1, 2])).unwrap_err();
+        assert!(e.path == "meshes[0]" && e.message.contains("both"), "{e}");
     }
 }
