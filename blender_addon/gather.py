@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any
 
 import bpy
@@ -127,6 +128,116 @@ def gather_world_medium(world: bpy.types.World | None) -> list[MediumData]:
     return [MediumData(node=name, scattering=tuple(sig_s), absorption=tuple(sig_a), phase=phase)]
 
 
+# -- what Cycles renders ------------------------------------------------------------
+
+
+#: Object types whose evaluated geometry becomes a mesh (curves and text with faces: bevelled, filled).
+GEOMETRY_TYPES = ("MESH", "CURVE", "SURFACE", "META", "FONT")
+
+
+@dataclass
+class RenderedObject:
+    """An object Cycles renders: ``name`` (``instancer/member`` for an instance), the original
+    object (settings, node trees), its world matrix, and for geometry its evaluated triangles
+    (``(n, 3)`` positions, ``(m, 3)`` indices; ``None`` without any)."""
+
+    name: str
+    original: bpy.types.Object
+    matrix: Any
+    geometry: tuple[np.ndarray, np.ndarray] | None = None
+
+
+def _triangles(ev: bpy.types.Object) -> tuple[np.ndarray, np.ndarray] | None:
+    """An evaluated object's triangles (modifiers applied), object space."""
+    try:
+        me = ev.to_mesh()
+    except RuntimeError:  # "Object does not have geometry data" (an empty text, a bare curve)
+        return None
+    try:
+        me.calc_loop_triangles()
+        co = np.empty(len(me.vertices) * 3, dtype=np.float64)
+        me.vertices.foreach_get("co", co)
+        tri = np.empty(len(me.loop_triangles) * 3, dtype=np.int64)
+        me.loop_triangles.foreach_get("vertices", tri)
+        return co.reshape(-1, 3), tri.reshape(-1, 3)
+    finally:
+        ev.to_mesh_clear()
+
+
+class _Visibility:
+    """Which collections of a view layer Cycles renders, and which of those the viewport evaluates."""
+
+    def __init__(self, view_layer: bpy.types.ViewLayer) -> None:
+        self.rendered: set[str] = set()
+        self.evaluated: set[str] = set()
+
+        def walk(lc: bpy.types.LayerCollection, rendered: bool, evaluated: bool) -> None:
+            c = lc.collection
+            rendered = rendered and not lc.exclude and not getattr(c, "hide_render", False)
+            evaluated = evaluated and not getattr(c, "hide_viewport", False)
+            if rendered:
+                self.rendered.add(c.name_full)
+                if evaluated:
+                    self.evaluated.add(c.name_full)
+            for child in lc.children:
+                walk(child, rendered, evaluated)
+
+        walk(view_layer.layer_collection, True, True)
+
+    def renders(self, obj: bpy.types.Object) -> bool:
+        """Not disabled for renders, in a collection that is neither excluded nor disabled for renders."""
+        return not obj.hide_render and any(c.name_full in self.rendered for c in obj.users_collection)
+
+    def evaluates(self, obj: bpy.types.Object) -> bool:
+        """… and Blender's viewport evaluation has it (not disabled in viewports, nor its collection)."""
+        return not obj.hide_viewport and any(c.name_full in self.evaluated for c in obj.users_collection)
+
+
+def rendered_objects(scene: bpy.types.Scene, depsgraph: bpy.types.Depsgraph) -> list[RenderedObject]:
+    """The objects and instances (collection, particle, geometry-node instances) that Cycles renders.
+
+    Blender's viewport evaluation lists what the viewport shows with its instances; objects it
+    lists whose collection is disabled for renders are dropped. Objects hidden in the viewport
+    (eye icon) are evaluated all the same and added. An object that renders but is disabled in
+    viewports (monitor icon) is not evaluated at all, and is an error naming it.
+    """
+    vis = _Visibility(depsgraph.view_layer)
+    out: list[RenderedObject] = []
+    listed: set[str] = set()
+    for inst in depsgraph.object_instances:
+        # An instance's evaluated object lives only during this step of the iteration:
+        # its matrix and triangles are copied now.
+        ev = inst.object
+        obj = ev.original
+        if inst.is_instance:
+            instancer = inst.parent.original if inst.parent is not None else None
+            if instancer is None or not vis.renders(instancer) or obj.hide_render:
+                continue
+            if instancer == obj and obj.type != "MESH":
+                continue  # a curve's or text's own surface, listed again as a mesh instance of itself
+            name = f"{instancer.name}/{obj.name}"
+        else:
+            if not vis.renders(obj):
+                continue
+            listed.add(obj.name_full)
+            name = obj.name
+        geometry = _triangles(ev) if obj.type in GEOMETRY_TYPES else None
+        out.append(RenderedObject(name, obj, inst.matrix_world.copy(), geometry))
+    for obj in scene.objects:
+        if obj.name_full in listed or not vis.renders(obj) or obj.type not in (*GEOMETRY_TYPES, "LIGHT"):
+            continue
+        if not vis.evaluates(obj):
+            raise SceneInputError(
+                f"object '{obj.name}' renders but is disabled in viewports (monitor icon, on it or its "
+                "collection): Blender does not evaluate it for the viewport, which is what Tyndall reads. "
+                "Enable it in viewports (it may stay hidden with the eye icon), or disable it for renders"
+            )
+        ev = obj.evaluated_get(depsgraph)
+        geometry = _triangles(ev) if obj.type in GEOMETRY_TYPES else None
+        out.append(RenderedObject(obj.name, obj, ev.matrix_world.copy(), geometry))
+    return out
+
+
 # -- lights --------------------------------------------------------------------
 
 
@@ -185,11 +296,15 @@ def _ies_property(obj: bpy.types.Object, light: bpy.types.Light) -> IesData | No
     )
 
 
-def gather_lights(scene: bpy.types.Scene) -> list[LightData]:
-    """Every render-visible light object of ``scene``."""
+def gather_lights(objects: list[RenderedObject], notes: list[str]) -> list[LightData]:
+    """The lights among the objects Cycles renders (:func:`rendered_objects`)."""
     out = []
-    for obj in scene.objects:
-        if obj.type != "LIGHT" or obj.hide_render:
+    for ro in objects:
+        obj = ro.original
+        if obj.type != "LIGHT":
+            continue
+        if not obj.visible_volume_scatter:
+            notes.append(f"{ro.name}: Ray Visibility > Volume Scatter is off, so it lights no haze in Cycles; left out")
             continue
         light = obj.data
         color = tuple(light.color)
@@ -203,9 +318,9 @@ def gather_lights(scene: bpy.types.Scene) -> list[LightData]:
         color = tuple(c * n for c, n in zip(color, node_color[:3], strict=True))
         out.append(
             LightData(
-                name=obj.name,
+                name=ro.name,
                 kind=light.type,
-                matrix=_rows(obj.matrix_world),
+                matrix=_rows(ro.matrix),
                 color=(color[0], color[1], color[2]),
                 energy=float(light.energy) * k,
                 exposure=float(getattr(light, "exposure", 0.0)),
@@ -225,11 +340,14 @@ def gather_lights(scene: bpy.types.Scene) -> list[LightData]:
 def gather_camera(scene: bpy.types.Scene, resolution_scale: float = 1.0) -> CameraData | None:
     """The active camera with the render resolution (× percentage × ``resolution_scale``) and pixel filter."""
     cam = scene.camera
-    if cam is None or cam.type != "CAMERA":
+    if cam is None:
         return None
+    if cam.type != "CAMERA":
+        raise SceneInputError(
+            f"the scene camera '{cam.name}' is an object of type {cam.type}, not a camera: make a camera active"
+        )
     r = scene.render
-    f = r.resolution_percentage / 100.0 * resolution_scale
-    w, h = max(1, round(r.resolution_x * f)), max(1, round(r.resolution_y * f))
+    w, h = cv.render_resolution(r.resolution_x, r.resolution_y, r.resolution_percentage, resolution_scale)
     cycles = getattr(scene, "cycles", None)
     data = cam.data
     return CameraData(
@@ -247,52 +365,76 @@ def gather_camera(scene: bpy.types.Scene, resolution_scale: float = 1.0) -> Came
         cam_type=data.type,
         filter_type=getattr(cycles, "pixel_filter_type", "BLACKMAN_HARRIS") if cycles else "BLACKMAN_HARRIS",
         filter_size_px=float(r.filter_size),
+        pixel_aspect=(float(r.pixel_aspect_x), float(r.pixel_aspect_y)),
+        render_region=("crop" if r.use_crop_to_border else "region") if r.use_border else "",
     )
 
 
-def gather_meshes(scene: bpy.types.Scene, depsgraph: bpy.types.Depsgraph) -> list[MeshData]:
-    """Render-visible mesh objects, evaluated (modifiers applied), as occluders."""
+def _volume_only(material: bpy.types.Material | None) -> bool:
+    """Whether ``material`` feeds only the Volume of its Material Output (a fog box: no surface)."""
+    if material is None or not material.use_nodes or material.node_tree is None:
+        return False
+    out = _active_output(material.node_tree, "ShaderNodeOutputMaterial")
+    return (
+        out is not None
+        and _linked_from(out.inputs["Surface"]) is None
+        and _linked_from(out.inputs["Volume"]) is not None
+    )
+
+
+def _modifier_differences(obj: bpy.types.Object) -> list[str]:
+    """Modifiers whose render result differs from the viewport's (Tyndall reads the viewport's)."""
     out = []
-    for obj in scene.objects:
-        if obj.type != "MESH" or obj.hide_render:
+    for m in obj.modifiers:
+        if m.show_viewport != m.show_render:
+            out.append(f"{m.name} ({'render' if m.show_render else 'viewport'} only)")
+        elif m.show_render and getattr(m, "levels", None) != getattr(m, "render_levels", None):
+            out.append(f"{m.name} (levels {m.levels} in the viewport, {m.render_levels} in renders)")
+    return out
+
+
+def gather_meshes(objects: list[RenderedObject], notes: list[str]) -> list[MeshData]:
+    """The surfaces among the objects Cycles renders (:func:`rendered_objects`), evaluated
+    (modifiers applied, instances placed), as occluders."""
+    out = []
+    for ro in objects:
+        obj = ro.original
+        if obj.type not in GEOMETRY_TYPES:
             continue
-        ev = obj.evaluated_get(depsgraph)
-        me = ev.to_mesh()
-        try:
-            me.calc_loop_triangles()
-            n_v, n_t = len(me.vertices), len(me.loop_triangles)
-            co = np.empty(n_v * 3, dtype=np.float64)
-            me.vertices.foreach_get("co", co)
-            tri = np.empty(n_t * 3, dtype=np.int64)
-            me.loop_triangles.foreach_get("vertices", tri)
-            out.append(
-                MeshData(
-                    name=obj.name,
-                    positions=co.reshape(-1, 3),
-                    triangles=tri.reshape(-1, 3),
-                    matrix=_rows(ev.matrix_world),
-                )
-            )
-        finally:
-            ev.to_mesh_clear()
+        materials = [slot.material for slot in obj.material_slots]
+        if materials and all(_volume_only(m) for m in materials):
+            notes.append(f"{ro.name}: its material has only a Volume output (a fog volume, not a surface); left out")
+            continue
+        if not obj.visible_camera and not obj.visible_shadow:
+            notes.append(f"{ro.name}: Ray Visibility > Camera and Shadow are off; left out")
+            continue
+        for off, effect in (("Camera", "blocks the view"), ("Shadow", "casts shadows in the haze")):
+            if not getattr(obj, f"visible_{off.lower()}"):
+                notes.append(f"{ro.name}: Ray Visibility > {off} is off, but in Tyndall it still {effect}")
+        differ = _modifier_differences(obj)
+        if differ:
+            notes.append(f"{ro.name}: modifiers differ in renders ({', '.join(differ)}); the viewport's result is used")
+        if ro.geometry is not None:
+            positions, triangles = ro.geometry
+            out.append(MeshData(name=ro.name, positions=positions, triangles=triangles, matrix=_rows(ro.matrix)))
     return out
 
 
 def gather_scene(scene: bpy.types.Scene, depsgraph: bpy.types.Depsgraph) -> SceneData:
     """Everything Tyndall needs from ``scene`` (raises :class:`SceneInputError`)."""
     st = scene.tyndall
-    skipped = [
-        f"{o.name}: volume objects are not exported (only the world volume)"
-        for o in scene.objects
-        if o.type == "VOLUME" and not o.hide_render
-    ]
+    objects = rendered_objects(scene, depsgraph)
+    volumes = [ro.name for ro in objects if ro.original.type == "VOLUME"]
+    notes = [f"{name}: volume objects are not exported (only the world volume)" for name in volumes]
+    lights = gather_lights(objects, notes)
+    meshes = gather_meshes(objects, notes)
     return SceneData(
         camera=gather_camera(scene, st.resolution_scale),
-        lights=gather_lights(scene),
+        lights=lights,
         media=gather_world_medium(scene.world),
-        meshes=gather_meshes(scene, depsgraph),
+        meshes=meshes,
         unit_scale=float(scene.unit_settings.scale_length),
-        skipped=skipped,
+        skipped=notes,
         tolerance=float(st.tolerance),
         threads=int(st.threads),
         include_sun=bool(st.include_sun),

@@ -5,6 +5,7 @@ from __future__ import annotations
 import bpy
 
 from . import gather
+from .core import conversions as cv
 from .core.scene_build import SceneInputError
 from .operators import RUNNING
 
@@ -38,9 +39,9 @@ class VIEW3D_PT_tyndall_volumetrics(_TyndallPanel, bpy.types.Panel):
         col = layout.column(align=True)
         cam = scene.camera
         r = scene.render
-        f = r.resolution_percentage / 100.0 * st.resolution_scale
+        w, h = cv.render_resolution(r.resolution_x, r.resolution_y, r.resolution_percentage, st.resolution_scale)
         col.label(
-            text=f"Camera: {cam.name if cam else 'none'}, {round(r.resolution_x * f)}×{round(r.resolution_y * f)} px",
+            text=f"Camera: {cam.name if cam else 'none'}, {w}×{h} px",
             icon="CAMERA_DATA",
         )
         lights = [o for o in scene.objects if o.type == "LIGHT" and not o.hide_render]

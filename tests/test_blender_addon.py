@@ -28,6 +28,8 @@ tyndall = pytest.importorskip("tyndall")
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 
+import mathutils  # noqa: E402
+
 import blender_addon  # noqa: E402
 from blender_addon import gather  # noqa: E402
 from blender_addon.core import conversions as cv  # noqa: E402
@@ -96,6 +98,11 @@ def make_scene(density: float = 0.05, phase: str = "HENYEY_GREENSTEIN", anisotro
     out = next(n for n in nt.nodes if n.bl_idname == "ShaderNodeOutputWorld")
     nt.links.new(vs.outputs[0], out.inputs["Volume"])
     return {"camera": cam, "spot": spot, "cube": cube, "world": world, "scatter": vs}
+
+
+def _lights(sc: bpy.types.Scene) -> list[Any]:
+    """The add-on's records of the lights Cycles renders in ``sc``."""
+    return gather.gather_lights(gather.rendered_objects(sc, bpy.context.evaluated_depsgraph_get()), [])
 
 
 def exr_channels(path: str) -> dict[str, Any]:
@@ -358,11 +365,14 @@ def test_export_compute_import(addon: None, tmp_path: Path) -> None:
     for layer in ("inscatter", "transmittance", "error", "inscatter.Spot_001", "surface_transmittance.Spot_001"):
         assert ch[layer].shape == (36, 64, 3), layer
     assert ch["depth.Z"].shape == (36, 64)
-    assert ch["inscatter"].max() > 0 and 0 < ch["transmittance"].min() <= ch["transmittance"].max() <= 1
+    assert ch["inscatter"].max() > 0 and 0 <= ch["transmittance"].min() <= ch["transmittance"].max() <= 1
     assert abs(ch["inscatter"] - ch["inscatter.Spot_001"]).max() <= 1e-6 * ch["inscatter"].max()
     assert (ch["depth.Z"] < 1e9).sum() > 0  # the cube is seen
-    # A surface is seen through the haze twice (light → surface → camera): dimmer than the view alone.
     surf = ch["depth.Z"] < 1e9
+    # The world volume has no far end (in Cycles it goes on past Clip End): it hides the
+    # background (checked below away from the cube, where the filter mixes both).
+    assert (ch["transmittance"][surf] > 0).all()
+    # A surface is seen through the haze twice (light → surface → camera): dimmer than the view alone.
     st = ch["surface_transmittance.Spot_001"]
     assert (st[surf] < ch["transmittance"][surf]).all() and (st[surf] > 0).all()
     # Without a surface within the filter's reach (±2 px): the view transmittance.
@@ -374,6 +384,7 @@ def test_export_compute_import(addon: None, tmp_path: Path) -> None:
         for dx in range(5):
             near |= pad[dy : dy + surf.shape[0], dx : dx + surf.shape[1]]
     assert (~near).sum() > 100 and (st[~near] == ch["transmittance"][~near]).all()
+    assert (ch["transmittance"][~near] == 0).all()
     report = json.loads((out / "report.json").read_text())
     assert report["resolution"] == [64, 36]
     assert report["blender"]["light_layers"] == {"Spot.001": "inscatter.Spot_001"}
@@ -552,7 +563,7 @@ def test_round_trip_through_usd_keeps_every_light_type(addon: None, tmp_path: Pa
     sc.collection.objects.link(sun)
     sun.rotation_euler, sun.data.energy, sun.data.angle = (0.6, 0.1, 0.9), 4.0, math.radians(1.2)
     bpy.context.view_layer.update()  # matrix_world of the new objects
-    before = {x.name: x for x in gather.gather_lights(sc)}
+    before = {x.name: x for x in _lights(sc)}
     cam_before = [x for r in objs["camera"].matrix_world for x in r]
     lens_before = objs["camera"].data.lens
 
@@ -601,7 +612,7 @@ def test_round_trip_through_usd_keeps_every_light_type(addon: None, tmp_path: Pa
     bpy.ops.wm.usd_import(filepath=str(tmp_path / "rt.usda"), property_import_mode="ALL")
     sc = bpy.context.scene
     # One light of each type: matched by type (Blender's importer renames "Spot_001" to "Spot").
-    after = {x.kind: x for x in gather.gather_lights(sc)}
+    after = {x.kind: x for x in _lights(sc)}
     assert sorted(after) == ["POINT", "SPOT", "SUN"]
     for name in ("Spot.001", "Fill", "Sun"):
         b = before[name]
@@ -693,7 +704,44 @@ def _break_texture(objs: dict[str, Any], _tmp: Path) -> None:
     tree.links.new(noise.outputs["Fac"], objs["scatter"].inputs["Density"])
 
 
+def _break_pixel_aspect(_objs: dict[str, Any], _tmp: Path) -> None:
+    bpy.context.scene.render.pixel_aspect_x = 2.0
+
+
+def _break_crop(_objs: dict[str, Any], _tmp: Path) -> None:
+    r = bpy.context.scene.render
+    r.use_border, r.use_crop_to_border = True, True
+
+
+def _break_monitor_off(objs: dict[str, Any], _tmp: Path) -> None:
+    objs["spot"].hide_viewport = True  # renders, but the viewport does not evaluate it
+
+
+def _break_empty_camera(objs: dict[str, Any], _tmp: Path) -> None:
+    empty = bpy.data.objects.new("Rig", None)
+    bpy.context.scene.collection.objects.link(empty)
+    bpy.context.scene.camera = empty
+
+
+def _break_stretched_spot(objs: dict[str, Any], _tmp: Path) -> None:
+    objs["spot"].scale = (3.0, 1.0, 1.0)  # Cycles stretches the cone into an ellipse
+
+
+def _break_mirrored_ies(objs: dict[str, Any], tmp: Path) -> None:
+    _break_missing_ies(objs, tmp)
+    path = tmp / "p.ies"
+    path.write_text(IES_TEXT)
+    next(n for n in objs["spot"].data.node_tree.nodes if n.bl_idname == "ShaderNodeTexIES").filepath = str(path)
+    objs["spot"].scale = (-1.0, 1.0, 1.0)
+
+
 BAD_INPUTS = {
+    "pixel_aspect": (_break_pixel_aspect, "pixel aspect 2:1"),
+    "crop_to_region": (_break_crop, "Crop to Render Region"),
+    "disabled_in_viewports": (_break_monitor_off, "object 'Spot.001' renders but is disabled in viewports"),
+    "empty_as_camera": (_break_empty_camera, "scene camera 'Rig' is an object of type EMPTY"),
+    "stretched_spot": (_break_stretched_spot, r"light 'Spot.001': non-uniform scale \(3, 1, 1\)"),
+    "mirrored_ies": (_break_mirrored_ies, "mirror its IES profile"),
     "missing_ies": (_break_missing_ies, "file not found"),
     "nan_power": (_break_nan, "Power is not a finite number"),
     "no_lights": (_break_no_lights, "no lights"),
@@ -714,6 +762,110 @@ def test_bad_input_reports_and_writes_nothing(addon: None, tmp_path: Path, case:
     with pytest.raises(RuntimeError, match=message):  # EXEC_DEFAULT turns the ERROR report into RuntimeError
         getattr(bpy.ops.tyndall, op)("EXEC_DEFAULT", directory=str(out))
     assert not out.exists()
+
+
+def _built() -> Any:
+    """The scene the add-on builds from the current Blender scene."""
+    data = gather.gather_scene(bpy.context.scene, bpy.context.evaluated_depsgraph_get())
+    return build_scene(data)
+
+
+def test_unit_scale_gives_cycles_image(addon: None, tmp_path: Path) -> None:
+    """Cycles ignores the unit scale (a lamp's light falls off over Blender units); the scene is
+    written in metres, so the lamp's intensity is × s². Unit scale 0.01 rendered 10⁴× too bright."""
+    make_scene()
+    sc = bpy.context.scene
+    means = {}
+    for s in (1.0, 0.01):
+        sc.unit_settings.scale_length = s
+        out = tmp_path / f"s{s}"
+        assert bpy.ops.tyndall.compute_volumetrics("EXEC_DEFAULT", directory=str(out)) == {"FINISHED"}
+        spot = json.loads((out / "scene.json").read_text())["lights"][0]
+        assert spot["power_w"] == pytest.approx(1000.0 * s * s) and spot["position"] == pytest.approx([0, 0, 5 * s])
+        means[s] = float(exr_channels(str(out / "volumetrics.exr"))["inscatter"].mean())
+    assert means[0.01] == pytest.approx(means[1.0], rel=1e-4)
+
+
+def test_exported_objects_are_those_cycles_renders(addon: None) -> None:
+    """Collections excluded or disabled for renders, Ray Visibility, instances, fog boxes: the
+    export used to take every object not disabled for renders, at its last matrix (an excluded
+    light sat at the origin) and without instances."""
+    objs = make_scene()
+    sc = bpy.context.scene
+
+    def collection(name: str) -> bpy.types.Collection:
+        c = bpy.data.collections.new(name)
+        sc.collection.children.link(c)
+        return c
+
+    def light_in(coll: bpy.types.Collection, name: str) -> bpy.types.Object:
+        o = bpy.data.objects.new(name, bpy.data.lights.new(name, "POINT"))
+        coll.objects.link(o)
+        o.location = (1.0, 2.0, 3.0)
+        return o
+
+    excluded = collection("Excluded")
+    light_in(excluded, "InExcluded")
+    bpy.context.view_layer.layer_collection.children["Excluded"].exclude = True
+    no_render = collection("NoRender")
+    light_in(no_render, "InNoRender")
+    no_render.hide_render = True
+    light_in(sc.collection, "NoVolumeScatter").visible_volume_scatter = False
+    light_in(sc.collection, "EyeHidden").hide_set(True)  # hidden in the viewport, rendered: kept
+    props = bpy.data.collections.new("Props")  # not linked to the scene: instanced only
+    light_in(props, "PropLight").location = (0.0, 0.0, 1.0)
+    props.objects.link(objs["cube"].copy())
+    rig = bpy.data.objects.new("Rig", None)
+    rig.instance_type, rig.instance_collection = "COLLECTION", props
+    sc.collection.objects.link(rig)
+    rig.location = (2.0, 0.0, 0.0)
+    fog = objs["cube"].copy()
+    fog.name = "FogBox"
+    fog.data = objs["cube"].data.copy()
+    mat = bpy.data.materials.new("Fog")
+    mat.use_nodes = True
+    tree = mat.node_tree
+    for n in [n for n in tree.nodes if n.bl_idname != "ShaderNodeOutputMaterial"]:
+        tree.nodes.remove(n)
+    volume = tree.nodes.new("ShaderNodeVolumePrincipled")
+    tree.links.new(volume.outputs[0], tree.nodes["Material Output"].inputs["Volume"])
+    fog.data.materials.append(mat)
+    sc.collection.objects.link(fog)
+    built = _built()
+    lights = {lt["name"]: lt for lt in built.scene["lights"]}
+    assert sorted(lights) == ["EyeHidden", "Rig_PropLight", "Spot_001"]
+    assert lights["Rig_PropLight"]["position"] == pytest.approx([2.0, 0.0, 1.0])
+    assert sorted(m["name"] for m in built.scene["meshes"]) == ["Cube", "Rig/Cube.001"]
+    assert any("NoVolumeScatter: Ray Visibility > Volume Scatter is off" in n for n in built.notes)
+    assert any("FogBox: its material has only a Volume output" in n for n in built.notes)
+
+
+def test_blender_output_size_spot_limits_and_camera_axis(addon: None) -> None:
+    """Blender truncates the output size (63 × 35 px at 50 % is 31 × 17, not 32 × 18); the RNA's
+    largest Spot Size, π in 32 bits, is 180°; a mirrored point lamp is still a lamp; a sheared
+    camera keeps Blender's view axis (its −Z column), and the shear is a note."""
+    objs = make_scene()
+    r = bpy.context.scene.render
+    r.resolution_x, r.resolution_y, r.resolution_percentage = 63, 35, 50
+    objs["spot"].data.spot_size = math.pi
+    point = bpy.data.objects.new("Mirrored", bpy.data.lights.new("Mirrored", "POINT"))
+    bpy.context.scene.collection.objects.link(point)
+    point.scale = (-1.0, 1.0, 1.0)
+    parent = bpy.data.objects.new("Stretch", None)
+    bpy.context.scene.collection.objects.link(parent)
+    parent.scale = (1.0, 3.0, 1.0)
+    parent.rotation_euler = (0.0, 0.0, 0.4)
+    objs["camera"].parent = parent
+    bpy.context.view_layer.update()
+    built = _built()
+    assert built.scene["camera"]["resolution"] == [31, 17]
+    assert built.scene["lights"][0]["spot_size_deg"] == 180.0
+    assert [lt["name"] for lt in built.scene["lights"]] == ["Spot_001", "Mirrored"]
+    w, x, y, z = built.scene["camera"]["orientation"]["quaternion_wxyz"]
+    view = -mathutils.Quaternion((w, x, y, z)).to_matrix().col[2]
+    blender_view = -objs["camera"].matrix_world.to_3x3().col[2].normalized()
+    assert (view - blender_view).length < 1e-6  # mathutils is single precision
+    assert any("camera 'Cam': its transform shears its axes" in n for n in built.notes)
 
 
 def test_sky_without_sun_lamp_is_an_error(addon: None, tmp_path: Path) -> None:

@@ -8,6 +8,7 @@ from __future__ import annotations
 import math
 import re
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 FOUR_PI = 4.0 * math.pi
 
@@ -49,10 +50,20 @@ def radiant_intensity_w_sr(power_w: float) -> float:
     return power_w / FOUR_PI
 
 
+def render_resolution(res_x: int, res_y: int, percentage: int, scale: float = 1.0) -> tuple[int, int]:
+    """Blender's output size, resolution × percentage / 100 truncated as Blender does (63 × 35 px
+    at 50 % renders 31 × 17), then Tyndall's preview ``scale`` (rounded; at least 1 px)."""
+    w, h = res_x * percentage // 100, res_y * percentage // 100
+    if scale != 1.0:
+        w, h = round(w * scale), round(h * scale)
+    return max(1, w), max(1, h)
+
+
 def spot_size_deg(spot_size_rad: float) -> float:
     """Blender's Spot Size (full cone angle, radians in the RNA) in degrees, the Tyndall field ``spot_size_deg``."""
     deg = math.degrees(finite("Spot Size", spot_size_rad))
-    if not 0.1 <= deg <= 180.0 + 1e-9:
+    # The RNA stores radians in 32 bits: its maximum, π, reads as 180.000005°.
+    if not 0.1 <= deg <= 180.0 * (1.0 + 2.0**-23):
         raise ConversionError(f"Spot Size must be within 0.1..180°, got {deg}°")
     return min(deg, 180.0)
 
@@ -209,6 +220,57 @@ def quaternion_wxyz_from_rows(m: Sequence[Sequence[float]]) -> tuple[float, floa
         w, x, y, z = (r[1][0] - r[0][1]) / s, (r[0][2] + r[2][0]) / s, (r[1][2] + r[2][1]) / s, 0.25 * s
     n = math.sqrt(w * w + x * x + y * y + z * z)
     return (w / n, x / n, y / n, z / n)
+
+
+def _dot(a: Sequence[float], b: Sequence[float]) -> float:
+    return sum(p * q for p, q in zip(a, b, strict=True))
+
+
+def _cross(a: Sequence[float], b: Sequence[float]) -> list[float]:
+    return [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
+
+
+@dataclass
+class Frame:
+    """What an object's world matrix says about its orientation (see :func:`frame_from_rows`)."""
+
+    quaternion_wxyz: tuple[float, float, float, float]
+    #: Largest departure of two axes from perpendicular, degrees (a shear of a parent's non-uniform scale).
+    shear_deg: float
+    #: The matrix mirrors (negative determinant).
+    mirrored: bool
+    #: Lengths of the local X, Y and Z axes (object and parents' scale).
+    scale: tuple[float, float, float]
+
+
+def frame_from_rows(m: Sequence[Sequence[float]]) -> Frame:
+    """The rotation that keeps an object's local −Z axis (a camera's view, a lamp's beam) exactly
+    and its local Y as nearly as a rotation can, from a 3×3 or 4×4 matrix given by rows.
+
+    A parent's non-uniform scale can shear a child's axes, and a negative scale mirrors them;
+    neither is a rotation. The quaternion is that of Z = the normalised third column, Y = the
+    second column made perpendicular to it, X = Y × Z; what it leaves out is returned beside it.
+    """
+    cols = [[float(m[r][c]) for r in range(3)] for c in range(3)]
+    lengths = []
+    for i, col in enumerate(cols):
+        n = math.sqrt(sum(x * x for x in col))
+        if not math.isfinite(n) or n < 1e-300:
+            raise ConversionError(f"degenerate transform: axis {i} has length {n}")
+        lengths.append(n)
+        cols[i] = [x / n for x in col]
+    x, y, z = cols
+    angles = (math.degrees(math.acos(max(-1.0, min(1.0, _dot(a, b))))) for a, b in ((x, y), (y, z), (z, x)))
+    shear = max(abs(90.0 - a) for a in angles)
+    mirrored = _dot(_cross(x, y), z) < 0.0
+    y_perp = [b - _dot(y, z) * a for a, b in zip(z, y, strict=True)]
+    n = math.sqrt(_dot(y_perp, y_perp))
+    if n < 1e-12:
+        raise ConversionError("degenerate transform: the local Y and Z axes are parallel")
+    y_perp = [v / n for v in y_perp]
+    x_new = _cross(y_perp, z)
+    rows = [[x_new[r], y_perp[r], z[r]] for r in range(3)]
+    return Frame(quaternion_wxyz_from_rows(rows), shear, mirrored, (lengths[0], lengths[1], lengths[2]))
 
 
 def sun_angles_from_direction(direction_to_sun: Sequence[float]) -> tuple[float, float]:

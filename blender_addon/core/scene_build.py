@@ -11,12 +11,11 @@ import math
 import os
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import Any
+
+import numpy as np
 
 from . import conversions as cv
-
-if TYPE_CHECKING:
-    import numpy as np
 
 DEFAULT_LAYERS: tuple[str, ...] = (
     "inscatter",
@@ -93,6 +92,8 @@ class CameraData:
     cam_type: str = "PERSP"
     filter_type: str = "BLACKMAN_HARRIS"
     filter_size_px: float = 1.5
+    pixel_aspect: tuple[float, float] = (1.0, 1.0)  # Render > Format > Aspect X, Y
+    render_region: str = ""  # "" (whole frame), "region" (Render Region) or "crop" (… and Crop to Render Region)
 
 
 @dataclass
@@ -151,22 +152,41 @@ def _position(m: list[list[float]], s: float) -> list[float]:
     return [float(m[r][3]) * s for r in range(3)]
 
 
-def _camera(c: CameraData, s: float) -> dict[str, Any]:
+def _camera(c: CameraData, s: float, notes: list[str]) -> dict[str, Any]:
+    where = f"camera '{c.name}'"
     if c.cam_type != "PERSP":
-        raise SceneInputError(f"camera '{c.name}': only perspective cameras are supported (got {c.cam_type})")
+        raise SceneInputError(f"{where}: only perspective cameras are supported (got {c.cam_type})")
     w, h = c.resolution
     if w < 1 or h < 1:
         raise SceneInputError(f"render resolution {w}×{h} is empty")
+    if c.pixel_aspect[0] != c.pixel_aspect[1]:
+        raise SceneInputError(
+            f"pixel aspect {c.pixel_aspect[0]:g}:{c.pixel_aspect[1]:g} (Render > Format > Aspect X/Y): Tyndall "
+            "renders square pixels; set both to the same value"
+        )
+    if c.render_region == "crop":
+        raise SceneInputError(
+            "Crop to Render Region is on: Cycles' image is the region's size, Tyndall renders the whole frame; "
+            "turn off Crop to Render Region (or Render Region)"
+        )
+    if c.render_region == "region":
+        notes.append("Render Region is ignored: Tyndall renders the whole frame")
     try:
-        q = cv.quaternion_wxyz_from_rows(c.matrix)
+        frame = cv.frame_from_rows(c.matrix)
     except cv.ConversionError as e:
-        raise SceneInputError(f"camera '{c.name}': {e}") from e
+        raise SceneInputError(f"{where}: {e}") from e
+    if frame.mirrored:
+        raise SceneInputError(f"{where}: the transform mirrors (negative scale), which Tyndall's camera cannot")
+    if frame.shear_deg > 0.01:
+        notes.append(
+            f"{where}: its transform shears its axes by {frame.shear_deg:.2f}° (a parent's non-uniform scale); "
+            "Blender's view is sheared, Tyndall's keeps the view axis and an upright image"
+        )
     fit = {"AUTO": "auto", "HORIZONTAL": "horizontal", "VERTICAL": "vertical"}[c.sensor_fit]
-    clip_end = c.clip_end * s
     return {
         "type": "perspective",
         "position": _position(c.matrix, s),
-        "orientation": {"quaternion_wxyz": list(q)},
+        "orientation": {"quaternion_wxyz": list(frame.quaternion_wxyz)},
         "focal_length_mm": c.lens_mm,
         "sensor_width_mm": c.sensor_width_mm,
         "sensor_height_mm": c.sensor_height_mm,
@@ -175,7 +195,9 @@ def _camera(c: CameraData, s: float) -> dict[str, Any]:
         "shift_y": c.shift_y,
         "resolution": [int(w), int(h)],
         "clip_start_m": max(c.clip_start * s, 0.0),
-        "clip_end_m": clip_end if math.isfinite(clip_end) and clip_end > c.clip_start * s else None,
+        # Cycles ends surfaces at Clip End but the world volume goes on to infinity (a
+        # render with Clip End 10 m matched one with 1000 m to 0.1 %): no far clip here.
+        "clip_end_m": None,
     }
 
 
@@ -198,7 +220,6 @@ def _light(
     try:
         color = cv.rgb("Color", light.color)
         matrix = light.matrix
-        q = cv.quaternion_wxyz_from_rows(matrix)
         if light.kind == "SUN":
             if not include_sun:
                 notes.append(
@@ -218,7 +239,20 @@ def _light(
         if light.kind not in ("POINT", "SPOT"):
             notes.append(f"{light.name}: {light.kind.lower()} lights are not supported by Tyndall, left out")
             return None
-        power = cv.light_power_w(light.energy, light.exposure)
+        frame = cv.frame_from_rows(matrix)
+        if frame.mirrored and light.ies is not None:
+            raise cv.ConversionError(
+                "the transform mirrors (negative scale), which would mirror its IES profile; Tyndall cannot"
+            )
+        sx, sy, sz = frame.scale
+        if light.kind == "SPOT" and (max(sx, sy, sz) > min(sx, sy, sz) * (1.0 + 1e-6) or frame.shear_deg > 0.01):
+            raise cv.ConversionError(
+                f"non-uniform scale ({sx:.4g}, {sy:.4g}, {sz:.4g}) or shear ({frame.shear_deg:.2g}°): Cycles "
+                "stretches the spot's cone into an ellipse, Tyndall's spot is round; apply or equalise the scale"
+            )
+        # Cycles ignores the unit scale: a lamp's light falls off over Blender units. The scene
+        # is in metres (lengths × s, densities ÷ s), so the intensity is × s² for the same image.
+        power = cv.light_power_w(light.energy, light.exposure) * s * s
         radius = cv.finite("Radius", light.radius) * s
         if radius < 0.0:
             raise cv.ConversionError(f"Radius must be ≥ 0, got {radius}")
@@ -226,7 +260,7 @@ def _light(
             "type": light.kind.lower(),
             "name": name,
             "position": _position(matrix, s),
-            "orientation": {"quaternion_wxyz": list(q)},
+            "orientation": {"quaternion_wxyz": list(frame.quaternion_wxyz)},
             "color": list(color),
             "power_w": power,
             "radius_m": radius,
@@ -260,6 +294,16 @@ def _ies(light: LightData, name: str, ies_texts: dict[str, str]) -> dict[str, An
     return {"file": fname, "strength": strength}
 
 
+def _farthest_point(mesh: MeshData, eye: np.ndarray) -> float:
+    """Largest distance from ``eye`` to a vertex of ``mesh`` in world space, Blender units."""
+    p = np.asarray(mesh.positions, dtype=np.float64).reshape(-1, 3)
+    m = np.asarray(mesh.matrix, dtype=np.float64)
+    if len(p) == 0:
+        return 0.0
+    world = p @ m[:3, :3].T + m[:3, 3]
+    return float(np.sqrt(((world - eye) ** 2).sum(axis=1)).max())
+
+
 def build_scene(data: SceneData) -> BuiltScene:
     """Check ``data`` and build the Tyndall scene dict.
 
@@ -274,7 +318,7 @@ def build_scene(data: SceneData) -> BuiltScene:
         raise SceneInputError(f"unit scale must be > 0, got {s}")
     if data.camera is None:
         raise SceneInputError("the scene has no active camera: add a camera and make it active")
-    camera = _camera(data.camera, s)
+    camera = _camera(data.camera, s, notes)
     if not data.lights:
         raise SceneInputError("the scene has no lights: add a point, spot or sun light")
     if not data.media:
@@ -308,9 +352,16 @@ def build_scene(data: SceneData) -> BuiltScene:
         raise SceneInputError("the world volume has zero density: nothing to compute")
 
     meshes = []
+    eye = np.array([float(data.camera.matrix[r][3]) for r in range(3)])
     for mesh in data.meshes:
         if len(mesh.triangles) == 0:
             continue
+        far = _farthest_point(mesh, eye)
+        if far > data.camera.clip_end:
+            notes.append(
+                f"{mesh.name}: reaches {far:.4g} from the camera, past its Clip End ({data.camera.clip_end:.4g}): "
+                "Cycles does not show surfaces there, Tyndall does (in both the haze goes on past it)"
+            )
         meshes.append(
             {
                 "name": mesh.name,
