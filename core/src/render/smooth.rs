@@ -155,6 +155,11 @@ impl Planes {
     pub fn plane(&self, group: u32) -> (DVec3, f64) {
         self.planes[group as usize - 1]
     }
+
+    /// Number of groups (they are numbered `1..=group_count()`).
+    pub fn group_count(&self) -> usize {
+        self.planes.len()
+    }
 }
 
 /// Where a light's shadow casters lie.
