@@ -283,10 +283,14 @@ def _export_usd(context: bpy.types.Context, path: str, built: BuiltScene) -> str
         idb[key] = value
         added.append((idb, key))
 
+    # Blender's exporter writes Blender units with metersPerUnit = 1 (so lamps fall off over
+    # Blender units, as Cycles has them); scene.json's coefficients are per metre, ÷ the unit
+    # scale: per Blender unit again here (at unit scale 0.01 the stage had 100× the density).
+    per_unit = float(scene.unit_settings.scale_length)
     try:
         setp(empty, "tyndall:medium:type", "homogeneous")
-        setp(empty, "tyndall:medium:scattering", list(med["scattering"]))
-        setp(empty, "tyndall:medium:absorption", list(med["absorption"]))
+        setp(empty, "tyndall:medium:scattering", [v * per_unit for v in med["scattering"]])
+        setp(empty, "tyndall:medium:absorption", [v * per_unit for v in med["absorption"]])
         setp(empty, "tyndall:medium:phase", med["phase"]["type"])
         if "g" in med["phase"]:
             setp(empty, "tyndall:medium:phaseG", float(med["phase"]["g"]))

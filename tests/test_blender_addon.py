@@ -783,6 +783,12 @@ def test_unit_scale_gives_cycles_image(addon: None, tmp_path: Path) -> None:
         spot = json.loads((out / "scene.json").read_text())["lights"][0]
         assert spot["power_w"] == pytest.approx(1000.0 * s * s) and spot["position"] == pytest.approx([0, 0, 5 * s])
         means[s] = float(exr_channels(str(out / "volumetrics.exr"))["inscatter"].mean())
+        # stage.usda is in Blender units (metersPerUnit = 1): its medium per Blender unit too
+        assert bpy.ops.tyndall.export_stage("EXEC_DEFAULT", directory=str(tmp_path / f"u{s}")) == {"FINISHED"}
+        usda = (tmp_path / f"u{s}" / "stage.usda").read_text()
+        assert "metersPerUnit = 1\n" in usda
+        line = next(x for x in usda.splitlines() if "tyndall:medium:scattering" in x)
+        assert [float(v) for v in line.split("(")[1].rstrip(")").split(",")] == pytest.approx([0.025, 0.03, 0.04])
     assert means[0.01] == pytest.approx(means[1.0], rel=1e-4)
 
 
