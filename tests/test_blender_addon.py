@@ -735,7 +735,15 @@ def _break_mirrored_ies(objs: dict[str, Any], tmp: Path) -> None:
     objs["spot"].scale = (-1.0, 1.0, 1.0)
 
 
+def _break_volume_scatter_visibility(objs: dict[str, Any], _tmp: Path) -> None:
+    objs["spot"].visible_volume_scatter = False  # the only lamp lights no haze in Cycles
+
+
 BAD_INPUTS = {
+    "only_lamp_invisible_to_volumes": (
+        _break_volume_scatter_visibility,
+        r"no lights: .* \(left out: Spot.001: Ray Visibility > Volume Scatter is off",
+    ),
     "pixel_aspect": (_break_pixel_aspect, "pixel aspect 2:1"),
     "crop_to_region": (_break_crop, "Crop to Render Region"),
     "disabled_in_viewports": (_break_monitor_off, "object 'Spot.001' renders but is disabled in viewports"),

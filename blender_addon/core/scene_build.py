@@ -294,6 +294,11 @@ def _ies(light: LightData, name: str, ies_texts: dict[str, str]) -> dict[str, An
     return {"file": fname, "strength": strength}
 
 
+def _left_out(notes: list[str]) -> str:
+    """What was left out, for an error that may be its consequence (a lamp in an excluded collection)."""
+    return f" (left out: {'; '.join(notes)})" if notes else ""
+
+
 def _farthest_point(mesh: MeshData, eye: np.ndarray) -> float:
     """Largest distance from ``eye`` to a vertex of ``mesh`` in world space, Blender units."""
     p = np.asarray(mesh.positions, dtype=np.float64).reshape(-1, 3)
@@ -320,7 +325,7 @@ def build_scene(data: SceneData) -> BuiltScene:
         raise SceneInputError("the scene has no active camera: add a camera and make it active")
     camera = _camera(data.camera, s, notes)
     if not data.lights:
-        raise SceneInputError("the scene has no lights: add a point, spot or sun light")
+        raise SceneInputError("the scene has no lights: add a point, spot or sun light" + _left_out(notes))
     if not data.media:
         raise SceneInputError(
             "the scene has no participating medium: connect a Volume Scatter or Principled Volume "
@@ -337,7 +342,7 @@ def build_scene(data: SceneData) -> BuiltScene:
             lights.append(d)
             light_names[light.name] = name
     if not lights:
-        raise SceneInputError("the scene has no light Tyndall supports (point, spot, sun)")
+        raise SceneInputError("the scene has no light Tyndall supports (point, spot, sun)" + _left_out(notes))
 
     media: list[dict[str, Any]] = []
     for m in data.media:
