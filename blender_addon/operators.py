@@ -372,9 +372,11 @@ def import_results(context: bpy.types.Context, folder: str, sky: bool = True, vo
         rep_path = os.path.join(folder, tasks.REPORT_JSON)
         rep = tasks.read_json(rep_path) if os.path.isfile(rep_path) else {}
         light_layers = rep.get("blender", {}).get("light_layers", {})
-        lgs = results.setup_lightgroups(scene, light_layers) if st.use_lightgroups else {}
+        kept: list[str] = []
+        lgs = results.setup_lightgroups(scene, light_layers, kept) if st.use_lightgroups else {}
         results.setup_compositor(scene, exr, light_layers, lgs)
         done.append("compositor")
+        done.extend(kept)
         if st.mute_world_volume and results.mute_world_volume(scene):
             done.append("world volume muted for the surface render")
         if lgs:

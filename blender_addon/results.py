@@ -75,13 +75,23 @@ def apply_sky(
     return sun
 
 
-def setup_lightgroups(scene: bpy.types.Scene, light_layers: dict[str, str]) -> dict[str, str]:
-    """One Cycles light group per light (``tyndall_<layer name>``); returns object name → light group."""
+def setup_lightgroups(
+    scene: bpy.types.Scene, light_layers: dict[str, str], kept: list[str] | None = None
+) -> dict[str, str]:
+    """One Cycles light group per light (``tyndall_<layer name>``); returns object name → light group.
+
+    A light already in a light group of the user's keeps it (it is named in ``kept``) and
+    gets no per-light composite: its surface light is dimmed by the view transmittance.
+    """
     view_layer = scene.view_layers[0] if scene.view_layers else None
     out = {}
     for obj_name, layer in light_layers.items():
         obj = scene.objects.get(obj_name)
         if obj is None:
+            continue
+        if obj.lightgroup and not obj.lightgroup.startswith(LIGHTGROUP_PREFIX):
+            if kept is not None:
+                kept.append(f"{obj_name} keeps its light group '{obj.lightgroup}' (no per-light composite)")
             continue
         lg = LIGHTGROUP_PREFIX + layer_safe_name(layer.removeprefix("inscatter."))
         obj.lightgroup = lg

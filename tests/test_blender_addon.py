@@ -882,6 +882,19 @@ def test_blender_output_size_spot_limits_and_camera_axis(addon: None) -> None:
     assert any("camera 'Cam': its transform shears its axes" in n for n in built.notes)
 
 
+def test_a_light_group_of_the_user_is_kept(addon: None, tmp_path: Path) -> None:
+    """Applying the results used to overwrite a light's own light group with tyndall_<light>."""
+    objs = make_scene()
+    bpy.context.scene.render.engine = "CYCLES"
+    objs["spot"].lightgroup = "my_key"
+    out = tmp_path / "shot"
+    assert bpy.ops.tyndall.compute_volumetrics("EXEC_DEFAULT", directory=str(out)) == {"FINISHED"}
+    assert objs["spot"].lightgroup == "my_key"
+    kept: list[str] = []
+    assert blender_addon.results.setup_lightgroups(bpy.context.scene, {"Spot.001": "inscatter.Spot_001"}, kept) == {}
+    assert kept == ["Spot.001 keeps its light group 'my_key' (no per-light composite)"]
+
+
 def test_sky_without_sun_lamp_is_an_error(addon: None, tmp_path: Path) -> None:
     make_scene()
     with pytest.raises(RuntimeError, match="no sun lamp"):
