@@ -211,7 +211,11 @@ def rendered_objects(scene: bpy.types.Scene, depsgraph: bpy.types.Depsgraph) -> 
         obj = ev.original
         if inst.is_instance:
             instancer = inst.parent.original if inst.parent is not None else None
-            if instancer is None or not vis.renders(instancer) or obj.hide_render:
+            if instancer is None or not vis.renders(instancer):
+                continue
+            # Cycles leaves out a collection instance's member that is disabled for renders,
+            # but renders a particle's object even when the object itself is (both measured).
+            if obj.hide_render and instancer.instance_type == "COLLECTION":
                 continue
             if instancer == obj and obj.type != "MESH":
                 continue  # a curve's or text's own surface, listed again as a mesh instance of itself
@@ -220,6 +224,8 @@ def rendered_objects(scene: bpy.types.Scene, depsgraph: bpy.types.Depsgraph) -> 
             if not vis.renders(obj):
                 continue
             listed.add(obj.name_full)
+            if obj.is_instancer and not obj.show_instancer_for_render:
+                continue  # an emitter shown in the viewport only (Cycles hides it)
             name = obj.name
         geometry = _triangles(ev) if obj.type in GEOMETRY_TYPES else None
         out.append(RenderedObject(name, obj, inst.matrix_world.copy(), geometry))
@@ -428,6 +434,7 @@ def gather_scene(scene: bpy.types.Scene, depsgraph: bpy.types.Depsgraph) -> Scen
     notes = [f"{name}: volume objects are not exported (only the world volume)" for name in volumes]
     lights = gather_lights(objects, notes)
     meshes = gather_meshes(objects, notes)
+    notes = list(dict.fromkeys(notes))  # once per instanced object, not once per instance
     return SceneData(
         camera=gather_camera(scene, st.resolution_scale),
         lights=lights,

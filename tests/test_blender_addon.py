@@ -845,11 +845,30 @@ def test_exported_objects_are_those_cycles_renders(addon: None) -> None:
     tree.links.new(volume.outputs[0], tree.nodes["Material Output"].inputs["Volume"])
     fog.data.materials.append(mat)
     sc.collection.objects.link(fog)
+    hidden_member = objs["cube"].copy()
+    hidden_member.name = "HiddenMember"
+    hidden_member.hide_render = True  # Cycles leaves it out of the instances (measured)
+    props.objects.link(hidden_member)
+    # Hair particles instancing a render-disabled object: Cycles renders the instances
+    # (measured) but not the emitter, shown in the viewport only.
+    emitter = objs["cube"].copy()
+    emitter.name = "Emitter"
+    sc.collection.objects.link(emitter)
+    emitter.modifiers.new("P", "PARTICLE_SYSTEM")
+    ps = emitter.particle_systems[0].settings
+    ps.type, ps.count, ps.render_type, ps.use_advanced_hair = "HAIR", 3, "OBJECT", True
+    source = objs["cube"].copy()
+    source.name = "Source"
+    sc.collection.objects.link(source)
+    source.hide_render = True
+    ps.instance_object = source
+    emitter.show_instancer_for_render = False
     built = _built()
     lights = {lt["name"]: lt for lt in built.scene["lights"]}
     assert sorted(lights) == ["EyeHidden", "Rig_PropLight", "Spot_001"]
     assert lights["Rig_PropLight"]["position"] == pytest.approx([2.0, 0.0, 1.0])
-    assert sorted(m["name"] for m in built.scene["meshes"]) == ["Cube", "Rig/Cube.001"]
+    assert sorted(m["name"] for m in built.scene["meshes"]) == ["Cube", "Emitter/Source", "Emitter/Source",
+                                                                "Emitter/Source", "Rig/Cube.001"]
     assert any("NoVolumeScatter: Ray Visibility > Volume Scatter is off" in n for n in built.notes)
     assert any("FogBox: its material has only a Volume output" in n for n in built.notes)
 
