@@ -145,6 +145,7 @@ class RenderedObject:
     original: bpy.types.Object
     matrix: Any
     geometry: tuple[np.ndarray, np.ndarray] | None = None
+    instanced: bool = False
 
 
 def _triangles(ev: bpy.types.Object) -> tuple[np.ndarray, np.ndarray] | None:
@@ -164,84 +165,78 @@ def _triangles(ev: bpy.types.Object) -> tuple[np.ndarray, np.ndarray] | None:
         ev.to_mesh_clear()
 
 
-class _Visibility:
-    """Which collections of a view layer Cycles renders, and which of those the viewport evaluates."""
-
-    def __init__(self, view_layer: bpy.types.ViewLayer) -> None:
-        self.rendered: set[str] = set()
-        self.evaluated: set[str] = set()
-
-        def walk(lc: bpy.types.LayerCollection, rendered: bool, evaluated: bool) -> None:
-            c = lc.collection
-            rendered = rendered and not lc.exclude and not getattr(c, "hide_render", False)
-            evaluated = evaluated and not getattr(c, "hide_viewport", False)
-            if rendered:
-                self.rendered.add(c.name_full)
-                if evaluated:
-                    self.evaluated.add(c.name_full)
-            for child in lc.children:
-                walk(child, rendered, evaluated)
-
-        walk(view_layer.layer_collection, True, True)
-
-    def renders(self, obj: bpy.types.Object) -> bool:
-        """Not disabled for renders, in a collection that is neither excluded nor disabled for renders."""
-        return not obj.hide_render and any(c.name_full in self.rendered for c in obj.users_collection)
-
-    def evaluates(self, obj: bpy.types.Object) -> bool:
-        """… and Blender's viewport evaluation has it (not disabled in viewports, nor its collection)."""
-        return not obj.hide_viewport and any(c.name_full in self.evaluated for c in obj.users_collection)
-
-
-def rendered_objects(scene: bpy.types.Scene, depsgraph: bpy.types.Depsgraph) -> list[RenderedObject]:
-    """The objects and instances (collection, particle, geometry-node instances) that Cycles renders.
-
-    Blender's viewport evaluation lists what the viewport shows with its instances; objects it
-    lists whose collection is disabled for renders are dropped. Objects hidden in the viewport
-    (eye icon) are evaluated all the same and added. An object that renders but is disabled in
-    viewports (monitor icon) is not evaluated at all, and is an error naming it.
-    """
-    vis = _Visibility(depsgraph.view_layer)
+def _collect(depsgraph: bpy.types.Depsgraph) -> list[RenderedObject]:
+    """The objects and instances of a render-mode depsgraph that Cycles draws (``show_self``)."""
     out: list[RenderedObject] = []
-    listed: set[str] = set()
     for inst in depsgraph.object_instances:
+        if not inst.show_self:
+            continue  # an emitter with Show Instancer for Render off, a hidden instancer
         # An instance's evaluated object lives only during this step of the iteration:
         # its matrix and triangles are copied now.
         ev = inst.object
         obj = ev.original
+        if obj.type not in (*GEOMETRY_TYPES, "LIGHT", "VOLUME"):
+            continue
         if inst.is_instance:
-            instancer = inst.parent.original if inst.parent is not None else None
-            if instancer is None or not vis.renders(instancer):
+            if inst.parent is None:
                 continue
-            # Cycles leaves out a collection instance's member that is disabled for renders,
-            # but renders a particle's object even when the object itself is (both measured).
-            if obj.hide_render and instancer.instance_type == "COLLECTION":
-                continue
-            if instancer == obj and obj.type != "MESH":
+            if inst.parent.original == obj and obj.type != "MESH":
                 continue  # a curve's or text's own surface, listed again as a mesh instance of itself
-            name = f"{instancer.name}/{obj.name}"
+            name = f"{inst.parent.original.name}/{obj.name}"
         else:
-            if not vis.renders(obj):
-                continue
-            listed.add(obj.name_full)
-            if obj.is_instancer and not obj.show_instancer_for_render:
-                continue  # an emitter shown in the viewport only (Cycles hides it)
             name = obj.name
         geometry = _triangles(ev) if obj.type in GEOMETRY_TYPES else None
-        out.append(RenderedObject(name, obj, inst.matrix_world.copy(), geometry))
-    for obj in scene.objects:
-        if obj.name_full in listed or not vis.renders(obj) or obj.type not in (*GEOMETRY_TYPES, "LIGHT"):
-            continue
-        if not vis.evaluates(obj):
-            raise SceneInputError(
-                f"object '{obj.name}' renders but is disabled in viewports (monitor icon, on it or its "
-                "collection): Blender does not evaluate it for the viewport, which is what Tyndall reads. "
-                "Enable it in viewports (it may stay hidden with the eye icon), or disable it for renders"
-            )
-        ev = obj.evaluated_get(depsgraph)
-        geometry = _triangles(ev) if obj.type in GEOMETRY_TYPES else None
-        out.append(RenderedObject(obj.name, obj, ev.matrix_world.copy(), geometry))
+        out.append(RenderedObject(name, obj, inst.matrix_world.copy(), geometry, inst.is_instance))
     return out
+
+
+def rendered_objects(scene: bpy.types.Scene, view_layer: bpy.types.ViewLayer) -> list[RenderedObject]:
+    """The objects and instances (collection, particle, geometry-node, vertex instances) that
+    Cycles renders in ``view_layer``, evaluated as for a render: render visibility of objects
+    and collections, modifiers at their render settings.
+
+    Blender evaluates a scene for rendering only inside a render, so a render engine that draws
+    nothing is registered for the moment and run (without compositing or sequencer); the
+    scene's settings are restored afterwards. An instance's name is
+    ``<instancer>/<object>``, numbered from the second on (``Emitter/Lamp 2``).
+    """
+    found: list[RenderedObject] = []
+
+    class GatherEngine(bpy.types.RenderEngine):
+        bl_idname = "TYNDALL_GATHER"
+        bl_label = "Tyndall (reading the scene)"
+
+        def render(self, depsgraph: bpy.types.Depsgraph) -> None:
+            found.extend(_collect(depsgraph))
+            result = self.begin_result(0, 0, self.size_x, self.size_y)
+            self.end_result(result)
+
+    r = scene.render
+    saved = (r.engine, r.use_compositing, r.use_sequencer)
+    # Blender renders only through a camera: a scene without one (a stage just imported) gets
+    # one for the moment.
+    stand_in = None
+    if scene.camera is None:
+        stand_in = bpy.data.objects.new("Tyndall stand-in camera", bpy.data.cameras.new("Tyndall stand-in camera"))
+        scene.collection.objects.link(stand_in)
+        scene.camera = stand_in
+    bpy.utils.register_class(GatherEngine)
+    try:
+        r.engine, r.use_compositing, r.use_sequencer = GatherEngine.bl_idname, False, False
+        bpy.ops.render.render(scene=scene.name, layer=view_layer.name)
+    finally:
+        r.engine, r.use_compositing, r.use_sequencer = saved
+        bpy.utils.unregister_class(GatherEngine)
+        if stand_in is not None:
+            cam_data = stand_in.data
+            bpy.data.objects.remove(stand_in)
+            bpy.data.cameras.remove(cam_data)
+    seen: dict[str, int] = {}
+    for ro in found:
+        n = seen[ro.name] = seen.get(ro.name, 0) + 1
+        if n > 1:
+            ro.name = f"{ro.name} {n}"
+    return found
 
 
 # -- lights --------------------------------------------------------------------
@@ -335,6 +330,8 @@ def gather_lights(objects: list[RenderedObject], notes: list[str]) -> list[Light
                 spot_blend=float(getattr(light, "spot_blend", 0.15)),
                 sun_angle=float(getattr(light, "angle", 0.00918)),
                 ies=ies,
+                source=obj.name,
+                instanced=ro.instanced,
             )
         )
     return out
@@ -388,17 +385,6 @@ def _volume_only(material: bpy.types.Material | None) -> bool:
     )
 
 
-def _modifier_differences(obj: bpy.types.Object) -> list[str]:
-    """Modifiers whose render result differs from the viewport's (Tyndall reads the viewport's)."""
-    out = []
-    for m in obj.modifiers:
-        if m.show_viewport != m.show_render:
-            out.append(f"{m.name} ({'render' if m.show_render else 'viewport'} only)")
-        elif m.show_render and getattr(m, "levels", None) != getattr(m, "render_levels", None):
-            out.append(f"{m.name} (levels {m.levels} in the viewport, {m.render_levels} in renders)")
-    return out
-
-
 def gather_meshes(objects: list[RenderedObject], notes: list[str]) -> list[MeshData]:
     """The surfaces among the objects Cycles renders (:func:`rendered_objects`), evaluated
     (modifiers applied, instances placed), as occluders."""
@@ -417,26 +403,25 @@ def gather_meshes(objects: list[RenderedObject], notes: list[str]) -> list[MeshD
         for off, effect in (("Camera", "blocks the view"), ("Shadow", "casts shadows in the haze")):
             if not getattr(obj, f"visible_{off.lower()}"):
                 notes.append(f"{ro.name}: Ray Visibility > {off} is off, but in Tyndall it still {effect}")
-        differ = _modifier_differences(obj)
-        if differ:
-            notes.append(f"{ro.name}: modifiers differ in renders ({', '.join(differ)}); the viewport's result is used")
         if ro.geometry is not None:
             positions, triangles = ro.geometry
             out.append(MeshData(name=ro.name, positions=positions, triangles=triangles, matrix=_rows(ro.matrix)))
     return out
 
 
-def gather_scene(scene: bpy.types.Scene, depsgraph: bpy.types.Depsgraph) -> SceneData:
-    """Everything Tyndall needs from ``scene`` (raises :class:`SceneInputError`)."""
+def gather_scene(scene: bpy.types.Scene, view_layer: bpy.types.ViewLayer) -> SceneData:
+    """Everything Tyndall needs from ``scene`` as rendered in ``view_layer`` (raises :class:`SceneInputError`)."""
     st = scene.tyndall
-    objects = rendered_objects(scene, depsgraph)
+    camera = gather_camera(scene, st.resolution_scale)
+    # Blender renders nothing without a camera: then the build reports the missing camera.
+    objects = rendered_objects(scene, view_layer) if camera is not None else []
     volumes = [ro.name for ro in objects if ro.original.type == "VOLUME"]
     notes = [f"{name}: volume objects are not exported (only the world volume)" for name in volumes]
     lights = gather_lights(objects, notes)
     meshes = gather_meshes(objects, notes)
     notes = list(dict.fromkeys(notes))  # once per instanced object, not once per instance
     return SceneData(
-        camera=gather_camera(scene, st.resolution_scale),
+        camera=camera,
         lights=lights,
         media=gather_world_medium(scene.world),
         meshes=meshes,

@@ -50,7 +50,7 @@ def output_directory(context: bpy.types.Context, override: str) -> str:
 def build_from_context(context: bpy.types.Context, folder: str) -> BuiltScene:
     """Gather, build and validate the Tyndall scene (raises :class:`UserError`)."""
     try:
-        data = gather.gather_scene(context.scene, context.evaluated_depsgraph_get())
+        data = gather.gather_scene(context.scene, context.view_layer)
         built = build_scene(data)
     except (SceneInputError, cv.ConversionError) as e:
         raise UserError(str(e)) from e

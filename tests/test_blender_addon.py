@@ -102,7 +102,7 @@ def make_scene(density: float = 0.05, phase: str = "HENYEY_GREENSTEIN", anisotro
 
 def _lights(sc: bpy.types.Scene) -> list[Any]:
     """The add-on's records of the lights Cycles renders in ``sc``."""
-    return gather.gather_lights(gather.rendered_objects(sc, bpy.context.evaluated_depsgraph_get()), [])
+    return gather.gather_lights(gather.rendered_objects(sc, bpy.context.view_layer), [])
 
 
 def exr_channels(path: str) -> dict[str, Any]:
@@ -713,10 +713,6 @@ def _break_crop(_objs: dict[str, Any], _tmp: Path) -> None:
     r.use_border, r.use_crop_to_border = True, True
 
 
-def _break_monitor_off(objs: dict[str, Any], _tmp: Path) -> None:
-    objs["spot"].hide_viewport = True  # renders, but the viewport does not evaluate it
-
-
 def _break_empty_camera(objs: dict[str, Any], _tmp: Path) -> None:
     empty = bpy.data.objects.new("Rig", None)
     bpy.context.scene.collection.objects.link(empty)
@@ -746,7 +742,6 @@ BAD_INPUTS = {
     ),
     "pixel_aspect": (_break_pixel_aspect, "pixel aspect 2:1"),
     "crop_to_region": (_break_crop, "Crop to Render Region"),
-    "disabled_in_viewports": (_break_monitor_off, "object 'Spot.001' renders but is disabled in viewports"),
     "empty_as_camera": (_break_empty_camera, "scene camera 'Rig' is an object of type EMPTY"),
     "stretched_spot": (_break_stretched_spot, r"light 'Spot.001': non-uniform scale \(3, 1, 1\)"),
     "mirrored_ies": (_break_mirrored_ies, "mirror its IES profile"),
@@ -774,7 +769,7 @@ def test_bad_input_reports_and_writes_nothing(addon: None, tmp_path: Path, case:
 
 def _built() -> Any:
     """The scene the add-on builds from the current Blender scene."""
-    data = gather.gather_scene(bpy.context.scene, bpy.context.evaluated_depsgraph_get())
+    data = gather.gather_scene(bpy.context.scene, bpy.context.view_layer)
     return build_scene(data)
 
 
@@ -826,9 +821,11 @@ def test_exported_objects_are_those_cycles_renders(addon: None) -> None:
     no_render.hide_render = True
     light_in(sc.collection, "NoVolumeScatter").visible_volume_scatter = False
     light_in(sc.collection, "EyeHidden").hide_set(True)  # hidden in the viewport, rendered: kept
+    light_in(sc.collection, "MonitorOff").hide_viewport = True  # not evaluated for the viewport, rendered
     props = bpy.data.collections.new("Props")  # not linked to the scene: instanced only
     light_in(props, "PropLight").location = (0.0, 0.0, 1.0)
     props.objects.link(objs["cube"].copy())
+    props.objects.link(light_in(sc.collection, "Shared"))  # placed directly and instanced
     rig = bpy.data.objects.new("Rig", None)
     rig.instance_type, rig.instance_collection = "COLLECTION", props
     sc.collection.objects.link(rig)
@@ -865,10 +862,15 @@ def test_exported_objects_are_those_cycles_renders(addon: None) -> None:
     emitter.show_instancer_for_render = False
     built = _built()
     lights = {lt["name"]: lt for lt in built.scene["lights"]}
-    assert sorted(lights) == ["EyeHidden", "Rig_PropLight", "Spot_001"]
+    assert sorted(lights) == ["EyeHidden", "MonitorOff", "Rig_PropLight", "Rig_Shared", "Shared", "Spot_001"]
+    # Light groups (keyed by these names) only for lamps that are not instanced: a Cycles light
+    # group is the object's, and its instances would share it.
+    assert sorted(built.light_names) == ["EyeHidden", "MonitorOff", "Spot.001"]
+    assert any("Shared: also instanced, so no light group of its own" in n for n in built.notes)
     assert lights["Rig_PropLight"]["position"] == pytest.approx([2.0, 0.0, 1.0])
-    assert sorted(m["name"] for m in built.scene["meshes"]) == ["Cube", "Emitter/Source", "Emitter/Source",
-                                                                "Emitter/Source", "Rig/Cube.001"]
+    assert sorted(m["name"] for m in built.scene["meshes"]) == [
+        "Cube", "Emitter/Source", "Emitter/Source 2", "Emitter/Source 3", "Rig/Cube.001"
+    ]
     assert any("NoVolumeScatter: Ray Visibility > Volume Scatter is off" in n for n in built.notes)
     assert any("FogBox: its material has only a Volume output" in n for n in built.notes)
 

@@ -62,6 +62,9 @@ class LightData:
     sun_angle: float = math.radians(0.526)  # radians
     ies: IesData | None = None
     colour_note: str = ""  # e.g. "× Emission Color (0.5, …)"
+    #: The light object's own name; for an instance (``name`` = ``instancer/object``) the object's.
+    source: str = ""
+    instanced: bool = False
 
 
 @dataclass
@@ -336,11 +339,17 @@ def build_scene(data: SceneData) -> BuiltScene:
     ies_texts: dict[str, str] = {}
     lights: list[dict[str, Any]] = []
     light_names: dict[str, str] = {}
+    # A Cycles light group belongs to the light object and so to all its instances: only a
+    # light object that is not instanced gets one (light_names feeds the light groups).
+    instanced = {lt.source for lt in data.lights if lt.instanced}
     for light, name in zip(data.lights, names, strict=True):
         d = _light(light, name, s, ies_texts, notes, data.include_sun)
         if d is not None:
             lights.append(d)
-            light_names[light.name] = name
+            if not light.instanced and (light.source or light.name) not in instanced:
+                light_names[light.name] = name
+            elif not light.instanced:
+                notes.append(f"{light.name}: also instanced, so no light group of its own (instances share it)")
     if not lights:
         raise SceneInputError("the scene has no light Tyndall supports (point, spot, sun)" + _left_out(notes))
 
