@@ -190,6 +190,10 @@ def _collect(depsgraph: bpy.types.Depsgraph) -> list[RenderedObject]:
     return out
 
 
+#: The Render Result slot the scene-reading render goes into (created once, then reused).
+GATHER_SLOT = "Tyndall (reading the scene)"
+
+
 def rendered_objects(scene: bpy.types.Scene, view_layer: bpy.types.ViewLayer) -> list[RenderedObject]:
     """The objects and instances (collection, particle, geometry-node, vertex instances) that
     Cycles renders in ``view_layer``, evaluated as for a render: render visibility of objects
@@ -220,11 +224,23 @@ def rendered_objects(scene: bpy.types.Scene, view_layer: bpy.types.ViewLayer) ->
         stand_in = bpy.data.objects.new("Tyndall stand-in camera", bpy.data.cameras.new("Tyndall stand-in camera"))
         scene.collection.objects.link(stand_in)
         scene.camera = stand_in
+    # The user's last render stays in its Render Result slot: this one goes into a slot of its own.
+    result = bpy.data.images.get("Render Result")
+    slots = result.render_slots if result is not None and result.type == "RENDER_RESULT" else None
+    active_slot = slots.active_index if slots is not None else 0
+    if slots is not None:
+        own = next((i for i, slot in enumerate(slots) if slot.name == GATHER_SLOT), None)
+        if own is None:
+            slots.new(name=GATHER_SLOT)
+            own = len(slots) - 1
+        slots.active_index = own
     bpy.utils.register_class(GatherEngine)
     try:
         r.engine, r.use_compositing, r.use_sequencer = GatherEngine.bl_idname, False, False
         bpy.ops.render.render(scene=scene.name, layer=view_layer.name)
     finally:
+        if slots is not None:
+            slots.active_index = active_slot
         r.engine, r.use_compositing, r.use_sequencer = saved
         bpy.utils.unregister_class(GatherEngine)
         if stand_in is not None:

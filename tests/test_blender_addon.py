@@ -875,6 +875,24 @@ def test_exported_objects_are_those_cycles_renders(addon: None) -> None:
     assert any("FogBox: its material has only a Volume output" in n for n in built.notes)
 
 
+def test_reading_the_scene_keeps_the_users_render_and_settings(addon: None) -> None:
+    """The add-on reads the scene through a render of its own: the last render's slot, the
+    engine and the compositing switch are as they were."""
+    make_scene()
+    sc = bpy.context.scene
+    sc.render.engine, sc.render.use_compositing = "CYCLES", True
+    sc.cycles.samples = 1
+    bpy.ops.render.render()
+    slots = bpy.data.images["Render Result"].render_slots
+    slots.active_index = 2
+    n = len(slots)
+    for _ in range(2):
+        names = [ro.name for ro in gather.rendered_objects(sc, bpy.context.view_layer)]
+        assert names.count("Spot.001") == 1 and names.count("Cube") == 1
+    assert (sc.render.engine, sc.render.use_compositing) == ("CYCLES", True)
+    assert slots.active_index == 2 and len(slots) == n + 1 and slots[n].name == gather.GATHER_SLOT
+
+
 def test_blender_output_size_spot_limits_and_camera_axis(addon: None) -> None:
     """Blender truncates the output size (63 × 35 px at 50 % is 31 × 17, not 32 × 18); the RNA's
     largest Spot Size, π in 32 bits, is 180°; a mirrored point lamp is still a lamp; a sheared
