@@ -217,25 +217,25 @@ def rendered_objects(scene: bpy.types.Scene, view_layer: bpy.types.ViewLayer) ->
 
     r = scene.render
     saved = (r.engine, r.use_compositing, r.use_sequencer)
-    # Blender renders only through a camera: a scene without one (a stage just imported) gets
-    # one for the moment.
-    stand_in = None
-    if scene.camera is None:
-        stand_in = bpy.data.objects.new("Tyndall stand-in camera", bpy.data.cameras.new("Tyndall stand-in camera"))
-        scene.collection.objects.link(stand_in)
-        scene.camera = stand_in
-    # The user's last render stays in its Render Result slot: this one goes into a slot of its own.
     result = bpy.data.images.get("Render Result")
     slots = result.render_slots if result is not None and result.type == "RENDER_RESULT" else None
     active_slot = slots.active_index if slots is not None else 0
-    if slots is not None:
-        own = next((i for i, slot in enumerate(slots) if slot.name == GATHER_SLOT), None)
-        if own is None:
-            slots.new(name=GATHER_SLOT)
-            own = len(slots) - 1
-        slots.active_index = own
+    stand_in = None
     bpy.utils.register_class(GatherEngine)
     try:
+        # Blender renders only through a camera: a scene without one (a stage just imported)
+        # gets one for the moment.
+        if scene.camera is None:
+            stand_in = bpy.data.objects.new("Tyndall stand-in camera", bpy.data.cameras.new("Tyndall stand-in camera"))
+            scene.collection.objects.link(stand_in)
+            scene.camera = stand_in
+        # The user's last render stays in its Render Result slot: this one goes into its own.
+        if slots is not None:
+            own = next((i for i, slot in enumerate(slots) if slot.name == GATHER_SLOT), None)
+            if own is None:
+                slots.new(name=GATHER_SLOT)
+                own = len(slots) - 1
+            slots.active_index = own
         r.engine, r.use_compositing, r.use_sequencer = GatherEngine.bl_idname, False, False
         bpy.ops.render.render(scene=scene.name, layer=view_layer.name)
     finally:
