@@ -856,10 +856,11 @@ impl<const C: usize> StageLights<C> {
             let fast = plain.as_ref().is_some_and(|p| a >= p.lo && b <= p.hi);
             // Homogeneous media and an analytic shape: every window is smooth
             // (its cuts are at the kinks, the closest approach, the graded
-            // mesh and the optical-depth levels), and a window starts with
-            // three nodes (G3, estimate |G3 − G1|): at loose tolerances most
-            // need no more (narrow beam, 768×432: 7.0 → 3.2 evaluations per
-            // window). Otherwise K7 first.
+            // mesh and the optical-depth levels), and a window at most
+            // [`G3_FIRST_MAX_WIDTH`] wide starts with three nodes (G3,
+            // estimate |G3 − G1|): at loose tolerances most need no more
+            // (narrow beam, 768×432: 7.0 → 3.2 evaluations per window).
+            // Otherwise K7 first.
             let smooth = fast && l.smooth_between_kinks();
             for wdw in bounds.windows(2) {
                 if wdw[1] <= wdw[0] {
