@@ -212,7 +212,11 @@ def rendered_objects(scene: bpy.types.Scene, view_layer: bpy.types.ViewLayer) ->
 
         def render(self, depsgraph: bpy.types.Depsgraph) -> None:
             found.extend(_collect(depsgraph))
-            result = self.begin_result(0, 0, self.size_x, self.size_y)
+            # An empty result in the engine's own slot (bpy 5.0's RenderEngine has no size_x:
+            # reading it raised, and Blender printed a Python error at every export).
+            rs = depsgraph.scene.render
+            pct = rs.resolution_percentage / 100.0
+            result = self.begin_result(0, 0, max(1, int(rs.resolution_x * pct)), max(1, int(rs.resolution_y * pct)))
             self.end_result(result)
 
     r = scene.render
