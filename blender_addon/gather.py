@@ -349,6 +349,7 @@ def gather_lights(objects: list[RenderedObject], notes: list[str]) -> list[Light
                 spot_size=float(getattr(light, "spot_size", 0.785398)),
                 spot_blend=float(getattr(light, "spot_blend", 0.15)),
                 sun_angle=float(getattr(light, "angle", 0.00918)),
+                normalize=bool(getattr(light, "normalize", True)),
                 ies=ies,
                 source=obj.name,
                 instanced=ro.instanced,

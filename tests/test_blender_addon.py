@@ -559,6 +559,7 @@ def test_round_trip_through_usd_keeps_every_light_type(addon: None, tmp_path: Pa
     sc.collection.objects.link(point)
     point.location, point.data.energy, point.data.color = (2.0, -1.0, 3.0), 150.0, (0.3, 0.6, 1.0)
     point.data.shadow_soft_size = 0.1
+    point.data.normalize = False  # Blender's exporter then writes no inputs:normalize (USD's default: off)
     sun = bpy.data.objects.new("Sun", bpy.data.lights.new("Sun", "SUN"))
     sc.collection.objects.link(sun)
     sun.rotation_euler, sun.data.energy, sun.data.angle = (0.6, 0.1, 0.9), 4.0, math.radians(1.2)
@@ -614,11 +615,15 @@ def test_round_trip_through_usd_keeps_every_light_type(addon: None, tmp_path: Pa
     # One light of each type: matched by type (Blender's importer renames "Spot_001" to "Spot").
     after = {x.kind: x for x in _lights(sc)}
     assert sorted(after) == ["POINT", "SPOT", "SUN"]
+    def rendered(x: Any) -> float:
+        """The power Cycles renders (tyndall_usd writes normalised lights)."""
+        return x.energy * (1.0 if x.normalize else cv.unnormalized_factor(x.kind, x.radius, x.sun_angle))
+
     for name in ("Spot.001", "Fill", "Sun"):
         b = before[name]
         a = after[b.kind]
         assert a.kind == b.kind, name
-        assert a.energy == pytest.approx(b.energy, rel=1e-5) and a.color == pytest.approx(b.color, rel=1e-6)
+        assert rendered(a) == pytest.approx(rendered(b), rel=1e-5) and a.color == pytest.approx(b.color, rel=1e-6)
         if b.kind == "SUN":
             assert [r[2] for r in a.matrix[:3]] == pytest.approx([r[2] for r in b.matrix[:3]], abs=1e-6)
             assert a.sun_angle == pytest.approx(b.sun_angle, rel=1e-5)
@@ -793,6 +798,68 @@ def test_unit_scale_gives_cycles_image(addon: None, tmp_path: Path) -> None:
         line = next(x for x in usda.splitlines() if "tyndall:medium:scattering" in x)
         assert [float(v) for v in line.split("(")[1].rstrip(")").split(",")] == pytest.approx([0.025, 0.03, 0.04])
     assert means[0.01] == pytest.approx(means[1.0], rel=1e-4)
+
+
+def test_unnormalized_lights_match_cycles(addon: None, tmp_path: Path) -> None:
+    """Blender 5.0's Normalize off: Cycles does not divide the strength by the light's area
+    (4πr² for a point or spot lamp, 4 at r = 0, π·sin²(angle/2) for a sun). The add-on
+    ignored the flag, so such lamps were exported as if normalised (4× too dark at r = 0).
+    Cycles' own off/on ratio, rendered here (a lamp above a white plane, no bounces), must
+    equal the factor; the exported power must carry it."""
+    import numpy as np
+
+    sc = bpy.context.scene
+    sc.render.engine = "CYCLES"
+    sc.cycles.samples, sc.cycles.use_denoising, sc.cycles.use_adaptive_sampling = 64, False, False
+    sc.cycles.max_bounces = 0
+    sc.render.resolution_x = sc.render.resolution_y = 16
+    sc.render.resolution_percentage = 100
+    sc.render.image_settings.file_format = "OPEN_EXR"
+    sc.render.filepath = str(tmp_path / "n.exr")
+    bpy.ops.mesh.primitive_plane_add(size=20.0)
+    cam = bpy.data.objects.new("Cam", bpy.data.cameras.new("Cam"))
+    sc.collection.objects.link(cam)
+    sc.camera, cam.location = cam, (0.0, 0.0, 10.0)
+
+    def mean(light: Any, normalize: bool) -> float:
+        light.data.normalize = normalize
+        bpy.ops.render.render(write_still=True)
+        ch = exr_channels(str(tmp_path / "n.exr"))
+        rgb = ch["RGB"] if "RGB" in ch else ch["RGBA"] if "RGBA" in ch else np.stack([ch[c] for c in "RGB"], -1)
+        return float(np.asarray(rgb, dtype="float64")[..., :3].mean())
+
+    cases = [("POINT", 0.0, 0.0, 1.0), ("POINT", 0.1, 0.0, 2.0), ("SPOT", 0.0, 0.0, 1.0), ("SUN", 0.0, 0.5, 1.0)]
+    for kind, radius, angle, scale in cases:
+        light = bpy.data.objects.new("L", bpy.data.lights.new("L", kind))
+        sc.collection.objects.link(light)
+        light.location, light.scale = (0.0, 0.0, 2.0), (scale, scale, scale)  # Cycles ignores the scale
+        light.data.energy = 3.0 if kind == "SUN" else 100.0
+        if kind == "SUN":
+            light.data.angle = angle
+        else:
+            light.data.shadow_soft_size = radius
+        if kind == "SPOT":
+            light.data.spot_size = 3.0
+        measured = mean(light, False) / mean(light, True)
+        factor = cv.unnormalized_factor(kind, radius, angle)
+        print(f"{kind} r={radius} angle={angle}: Cycles off/on {measured:.6g}, factor {factor:.6g}")
+        assert measured == pytest.approx(factor, rel=5e-3), kind
+        bpy.data.objects.remove(light)
+
+    # The export: a point lamp of radius 0.1 and the spot of make_scene (radius 0), Normalize off.
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    objs = make_scene()
+    fill = bpy.data.objects.new("Fill", bpy.data.lights.new("Fill", "POINT"))
+    bpy.context.scene.collection.objects.link(fill)
+    fill.location, fill.data.energy, fill.data.shadow_soft_size, fill.scale = (2.0, -1.0, 3.0), 150.0, 0.1, (2, 2, 2)
+    powers = {}
+    for normalize in (True, False):
+        objs["spot"].data.normalize = fill.data.normalize = normalize
+        out = tmp_path / f"n{normalize}"
+        assert bpy.ops.tyndall.export_stage("EXEC_DEFAULT", directory=str(out)) == {"FINISHED"}
+        powers[normalize] = {x["name"]: x["power_w"] for x in json.loads((out / "scene.json").read_text())["lights"]}
+    assert powers[False]["Spot_001"] == pytest.approx(4.0 * powers[True]["Spot_001"], rel=1e-12)
+    assert powers[False]["Fill"] == pytest.approx(4.0 * math.pi * 0.01 * powers[True]["Fill"], rel=1e-6)
 
 
 def test_exported_objects_are_those_cycles_renders(addon: None) -> None:

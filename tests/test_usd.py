@@ -128,6 +128,7 @@ def test_spot_light_with_ies(tmp_path: Path) -> None:
     light.CreateColorAttr(Gf.Vec3f(0.2, 0.4, 1.0))
     light.CreateRadiusAttr(0.0)
     light.CreateTreatAsPointAttr(True)
+    light.CreateNormalizeAttr(True)
     shaping = UsdLux.ShapingAPI.Apply(light.GetPrim())
     shaping.CreateShapingConeAngleAttr(25.0)
     shaping.CreateShapingConeSoftnessAttr(0.4)
@@ -168,6 +169,7 @@ def test_sun_light(tmp_path: Path) -> None:
     sun.CreateIntensityAttr(2.5)
     sun.CreateAngleAttr(0.3)
     sun.CreateColorAttr(Gf.Vec3f(1.0, 0.9, 0.8))
+    sun.CreateNormalizeAttr(True)
     (s,) = convert_stage(stage).scene["lights"]
     assert s["type"] == "sun"
     assert _close(s["strength_w_m2"], 10.0)  # Blender: intensity = Strength / 4
@@ -175,6 +177,40 @@ def test_sun_light(tmp_path: Path) -> None:
     assert _close(s["direction_to_sun"], _world_dir(stage, "/World/Sun", (0, 0, 1)))
     assert _close(s["color"], [1.0, 0.9, 0.8])
     _validate(convert_stage(stage).scene)
+
+
+def test_unnormalized_lights_as_blender_imports_and_cycles_renders(tmp_path: Path) -> None:
+    """``inputs:normalize`` off (the UsdLux default, and how Blender 5.0 exports a lamp with
+    Normalize off): Blender's importer keeps the flag, and Cycles then does not divide the
+    strength by the light's area: 4πr² with r the light's own radius (the transform and
+    metersPerUnit do not enter), 4 for r = 0, π·sin²(angle) for a sun (the add-on's
+    ``test_unnormalized_lights_match_cycles`` measures these in Cycles). A radius-0 lamp was
+    read 4× too dark, a scaled one by the square of its scale, a sun by up to 1/π·sin²(angle)."""
+    stage = _stage(tmp_path, mpu=0.01)
+    rig = UsdGeom.Xform.Define(stage, "/World/Rig")
+    _xform(rig.GetPrim(), (0, 0, 0), (0, 0, 0), scale=3.0)
+    lamp = UsdLux.SphereLight.Define(stage, "/World/Rig/Lamp")
+    lamp.CreateIntensityAttr(10.0)
+    lamp.CreateRadiusAttr(20.0)  # cm, scaled 3× by the rig: Cycles still takes 20
+    tiny = UsdLux.SphereLight.Define(stage, "/World/Tiny")
+    tiny.CreateIntensityAttr(10.0)
+    tiny.CreateRadiusAttr(0.0)
+    point = UsdLux.SphereLight.Define(stage, "/World/Point")
+    point.CreateIntensityAttr(10.0)
+    point.CreateRadiusAttr(0.5)
+    point.CreateTreatAsPointAttr(True)  # Blender imports it with radius 0
+    sun = UsdLux.DistantLight.Define(stage, "/World/Sun")
+    sun.CreateIntensityAttr(1000.0)
+    sun.CreateAngleAttr(0.3)
+    conv = convert_stage(stage)
+    got = {x["name"]: x for x in conv.scene["lights"]}
+    assert _close(got["Lamp"]["power_w"], 10.0 * math.pi * 4.0 * math.pi * 20.0**2)
+    assert _close(got["Lamp"]["radius_m"], 0.6)  # the geometry is still in metres
+    assert _close(got["Tiny"]["power_w"], 10.0 * math.pi * 4.0)
+    assert _close(got["Point"]["power_w"], 10.0 * math.pi * 4.0)
+    assert _close(got["Sun"]["strength_w_m2"], 4000.0 * math.pi * math.sin(math.radians(0.3)) ** 2)
+    assert sum("inputs:normalize is off" in n for n in conv.notes) == 4
+    _validate(conv.scene)
 
 
 def test_color_temperature_outside_blender_exports(tmp_path: Path) -> None:
@@ -585,6 +621,7 @@ def test_cli_renders_a_usd_stage(tmp_path: Path) -> None:
     sun = UsdLux.DistantLight.Define(stage, "/World/Sun")
     _xform(sun.GetPrim(), (0, 0, 0), (50, 0, 30))
     sun.CreateIntensityAttr(1.0)  # UsdLux's fallback for a DistantLight is 50000
+    sun.CreateNormalizeAttr(True)
     UsdLux.RectLight.Define(stage, "/World/Rect")
     s = stage.DefinePrim("/World/TyndallSettings")
     s.CreateAttribute("tyndall:output:resolution", Sdf.ValueTypeNames.Int2).Set(Gf.Vec2i(32, 18))

@@ -45,6 +45,26 @@ def light_power_w(energy: float, exposure: float = 0.0) -> float:
     return p
 
 
+def unnormalized_factor(kind: str, radius: float = 0.0, sun_angle: float = 0.0) -> float:
+    """What Cycles multiplies a light's strength by when its *Normalize* is off.
+
+    Cycles divides a normalised light's strength by the light's area: a point or spot lamp's
+    sphere 4πr² (``Light::area`` takes 4 for r = 0), a sun's disc π·sin²(angle/2) (1 for
+    angle 0); with Normalize off it does not. ``radius`` is the lamp's own Radius in Blender
+    units: Cycles uses neither the object's scale nor the unit scale. Measured with Cycles
+    5.0.1 (off/on ratios: 4.0 at r = 0, 0.12549 at r = 0.1 against 4π·0.01 = 0.12566, 0.19229
+    for a 0.5 rad sun against π·sin²(0.25) = 0.19229; the object's scale changed nothing) and
+    checked by ``test_unnormalized_lights_match_cycles``.
+    """
+    if kind in ("POINT", "SPOT"):
+        r = finite("Radius", radius)
+        return 4.0 * math.pi * r * r if r > 0.0 else 4.0
+    if kind == "SUN":
+        area = math.pi * math.sin(0.5 * finite("Angle", sun_angle)) ** 2
+        return area if area > 0.0 else 1.0
+    return 1.0
+
+
 def radiant_intensity_w_sr(power_w: float) -> float:
     """On-axis radiant intensity of a Cycles point/spot light of radius 0: I = P/(4π) W·sr⁻¹ per colour unit."""
     return power_w / FOUR_PI

@@ -60,6 +60,8 @@ class LightData:
     spot_size: float = math.radians(45.0)  # radians, as the RNA
     spot_blend: float = 0.15
     sun_angle: float = math.radians(0.526)  # radians
+    #: Blender's Normalize (on by default); off, Cycles does not divide the strength by the area.
+    normalize: bool = True
     ies: IesData | None = None
     colour_note: str = ""  # e.g. "× Emission Color (0.5, …)"
     #: The light object's own name; for an instance (``name`` = ``instancer/object``) the object's.
@@ -236,7 +238,7 @@ def _light(
                 "name": name,
                 "direction_to_sun": z,
                 "color": list(color),
-                "strength_w_m2": cv.light_power_w(light.energy, light.exposure),
+                "strength_w_m2": cv.light_power_w(light.energy, light.exposure) * _normalize(light, notes),
                 "angular_diameter_deg": min(max(math.degrees(cv.finite("Angle", light.sun_angle)), 0.0), 180.0),
             }
         if light.kind not in ("POINT", "SPOT"):
@@ -255,7 +257,7 @@ def _light(
             )
         # Cycles ignores the unit scale: a lamp's light falls off over Blender units. The scene
         # is in metres (lengths × s, densities ÷ s), so the intensity is × s² for the same image.
-        power = cv.light_power_w(light.energy, light.exposure) * s * s
+        power = cv.light_power_w(light.energy, light.exposure) * _normalize(light, notes) * s * s
         radius = cv.finite("Radius", light.radius) * s
         if radius < 0.0:
             raise cv.ConversionError(f"Radius must be ≥ 0, got {radius}")
@@ -276,6 +278,15 @@ def _light(
         return d
     except cv.ConversionError as e:
         raise SceneInputError(f"{where}: {e}") from e
+
+
+def _normalize(light: LightData, notes: list[str]) -> float:
+    """1 for a normalised light; with Normalize off, Cycles' factor (the light's area), noted."""
+    if light.normalize:
+        return 1.0
+    factor = cv.unnormalized_factor(light.kind, light.radius, light.sun_angle)
+    notes.append(f"{light.name}: Normalize is off, so Cycles does not divide its power by its area: × {factor:.6g}")
+    return factor
 
 
 def _ies(light: LightData, name: str, ies_texts: dict[str, str]) -> dict[str, Any]:

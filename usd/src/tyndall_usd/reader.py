@@ -5,8 +5,9 @@ bpy 5.0.1, see usd/README.md), so that Blender → USD → Tyndall gives the val
 Blender had:
 
 * SphereLight (point, spot): ``power_w = inputs:intensity · π · 2^inputs:exposure``
-* DistantLight (sun): ``strength_w_m2 = inputs:intensity · 4 · 2^inputs:exposure``,
-  ``angular_diameter_deg = 2 · inputs:angle``
+  (× 4π·inputs:radius², or × 4 at radius 0, when ``inputs:normalize`` is off: see usd/README.md)
+* DistantLight (sun): ``strength_w_m2 = inputs:intensity · 4 · 2^inputs:exposure``
+  (× π·sin²(inputs:angle) when ``inputs:normalize`` is off), ``angular_diameter_deg = 2 · inputs:angle``
 * ShapingAPI: ``spot_size_deg = 2 · inputs:shaping:cone:angle``,
   ``spot_blend = inputs:shaping:cone:softness``
 """
@@ -310,10 +311,16 @@ class _Converter:
             radius = 0.0
         radius_m = radius * _geom.mean_axis_scale(m)
         power = self.intensity_and_exposure(prim) * math.pi
-        if not _bool(prim, "inputs:normalize", self.time, False) and radius_m > 0.0:
-            # Not normalised: the emission is per unit area (as Blender's importer reads it).
-            power *= 4.0 * math.pi * radius_m * radius_m
-            self.notes.append(f"{path}: inputs:normalize is off: power multiplied by the sphere area 4πr²")
+        if not _bool(prim, "inputs:normalize", self.time, False):
+            # Not normalised (the UsdLux default; Blender's exporter writes `normalize = 1` only for
+            # lights with Normalize on): Blender's importer keeps the flag, and Cycles then does not
+            # divide the power by the light's area 4πr², r the light's own radius (neither the
+            # transform nor metersPerUnit enter), or 4 for r = 0 (Cycles' `Light::area`).
+            factor = 4.0 * math.pi * radius * radius if radius > 0.0 else 4.0
+            power *= factor
+            self.notes.append(
+                f"{path}: inputs:normalize is off: power × {factor:.6g} (the area Cycles does not divide by)"
+            )
         pos = m.ExtractTranslation()
         light: dict[str, Any] = {
             "name": self.object_name(prim),
@@ -410,12 +417,22 @@ class _Converter:
         angle = _float(prim, "inputs:angle", self.time, 0.53)
         if not 0.0 <= angle <= 90.0:
             raise UsdSceneError(path, "inputs:angle", f"must be in 0..=90 degrees, got {angle}")
+        strength = self.intensity_and_exposure(prim) * 4.0
+        if not _bool(prim, "inputs:normalize", self.time, False):
+            # As for sphere lights: Cycles does not divide by the sun's disc π·sin²(angle) (1 for 0).
+            area = math.pi * math.sin(math.radians(angle)) ** 2
+            factor = area if area > 0.0 else 1.0
+            strength *= factor
+            if factor != 1.0:
+                self.notes.append(
+                    f"{path}: inputs:normalize is off: strength × {factor:.6g} (the disc Cycles does not divide by)"
+                )
         return {
             "type": "sun",
             "name": self.object_name(prim),
             "direction_to_sun": [float(to_sun[0]), float(to_sun[1]), float(to_sun[2])],
             "color": self.light_color(prim),
-            "strength_w_m2": self.intensity_and_exposure(prim) * 4.0,
+            "strength_w_m2": strength,
             "angular_diameter_deg": 2.0 * angle,
         }
 

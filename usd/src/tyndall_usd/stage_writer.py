@@ -181,6 +181,7 @@ def write_stage(
             _pose(dl.GetPrim(), q, [0.0, 0.0, 0.0])
             dl.CreateIntensityAttr(float(light.get("strength_w_m2", 1.0)) / 4.0)
             dl.CreateAngleAttr(0.5 * float(light.get("angular_diameter_deg", 0.545)))
+            dl.CreateNormalizeAttr(True)  # the strength is the irradiance, as Blender's Normalize on
             dl.CreateColorAttr(color)
         elif kind == "ambient":
             dome = UsdLux.DomeLight.Define(stage, f"{ROOT}/{name}")
