@@ -350,6 +350,7 @@ def gather_lights(objects: list[RenderedObject], notes: list[str]) -> list[Light
                 spot_blend=float(getattr(light, "spot_blend", 0.15)),
                 sun_angle=float(getattr(light, "angle", 0.00918)),
                 normalize=bool(getattr(light, "normalize", True)),
+                cast_shadow=bool(getattr(light, "use_shadow", True)),
                 ies=ies,
                 source=obj.name,
                 instanced=ro.instanced,
@@ -421,12 +422,18 @@ def gather_meshes(objects: list[RenderedObject], notes: list[str]) -> list[MeshD
         if not obj.visible_camera and not obj.visible_shadow:
             notes.append(f"{ro.name}: Ray Visibility > Camera and Shadow are off; left out")
             continue
-        for off, effect in (("Camera", "blocks the view"), ("Shadow", "casts shadows in the haze")):
-            if not getattr(obj, f"visible_{off.lower()}"):
-                notes.append(f"{ro.name}: Ray Visibility > {off} is off, but in Tyndall it still {effect}")
         if ro.geometry is not None:
             positions, triangles = ro.geometry
-            out.append(MeshData(name=ro.name, positions=positions, triangles=triangles, matrix=_rows(ro.matrix)))
+            out.append(
+                MeshData(
+                    name=ro.name,
+                    positions=positions,
+                    triangles=triangles,
+                    matrix=_rows(ro.matrix),
+                    camera=bool(obj.visible_camera),
+                    shadow=bool(obj.visible_shadow),
+                )
+            )
     return out
 
 

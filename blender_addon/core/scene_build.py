@@ -62,6 +62,8 @@ class LightData:
     sun_angle: float = math.radians(0.526)  # radians
     #: Blender's Normalize (on by default); off, Cycles does not divide the strength by the area.
     normalize: bool = True
+    #: Blender's Cast Shadow (``use_shadow``); off, meshes shadow none of its light.
+    cast_shadow: bool = True
     ies: IesData | None = None
     colour_note: str = ""  # e.g. "× Emission Color (0.5, …)"
     #: The light object's own name; for an instance (``name`` = ``instancer/object``) the object's.
@@ -111,6 +113,9 @@ class MeshData:
     #: ``(m, 3)`` vertex indices.
     triangles: np.ndarray | Sequence[Sequence[int]]
     matrix: list[list[float]]
+    #: Ray Visibility > Camera and > Shadow (``visible_to_camera``, ``casts_shadows``).
+    camera: bool = True
+    shadow: bool = True
 
 
 @dataclass
@@ -275,6 +280,8 @@ def _light(
             d["spot_blend"] = cv.spot_blend(light.spot_blend)
         if light.ies is not None:
             d["ies"] = _ies(light, name, ies_texts)
+        if not light.cast_shadow:
+            d["casts_shadows"] = False
         return d
     except cv.ConversionError as e:
         raise SceneInputError(f"{where}: {e}") from e
@@ -382,19 +389,22 @@ def build_scene(data: SceneData) -> BuiltScene:
         if len(mesh.triangles) == 0:
             continue
         far = _farthest_point(mesh, eye)
-        if far > data.camera.clip_end:
+        if far > data.camera.clip_end and mesh.camera:
             notes.append(
                 f"{mesh.name}: reaches {far:.4g} from the camera, past its Clip End ({data.camera.clip_end:.4g}): "
                 "Cycles does not show surfaces there, Tyndall does (in both the haze goes on past it)"
             )
-        meshes.append(
-            {
-                "name": mesh.name,
-                "positions": mesh.positions,
-                "triangles": mesh.triangles,
-                "transform": {"matrix": _scaled_rows(mesh.matrix, s)},
-            }
-        )
+        entry: dict[str, Any] = {
+            "name": mesh.name,
+            "positions": mesh.positions,
+            "triangles": mesh.triangles,
+            "transform": {"matrix": _scaled_rows(mesh.matrix, s)},
+        }
+        if not mesh.camera:
+            entry["visible_to_camera"] = False
+        if not mesh.shadow:
+            entry["casts_shadows"] = False
+        meshes.append(entry)
 
     layers = list(data.layers)
     n_stage = sum(1 for lt in lights if lt["type"] in ("point", "spot"))

@@ -266,6 +266,15 @@ pub struct Mesh {
     /// Object → world transform. Default identity.
     #[serde(default)]
     pub transform: Transform,
+    /// Whether view rays stop at it (Blender's Ray Visibility > Camera). Off,
+    /// the camera sees through it, and it may still cast shadows. Default true.
+    #[serde(default = "default_true", skip_serializing_if = "is_true")]
+    pub visible_to_camera: bool,
+    /// Whether it shadows the stage lights' illumination volumes (Blender's
+    /// Ray Visibility > Shadow). Off, it still ends the view rays that meet
+    /// it. Default true.
+    #[serde(default = "default_true", skip_serializing_if = "is_true")]
+    pub casts_shadows: bool,
 }
 
 /// How a light's colour is given spectrally.
@@ -377,6 +386,11 @@ pub struct PointLight {
     /// IES profile. Default none.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub ies: Option<IesProfileRef>,
+    /// Whether meshes shadow its light (Blender's Cast Shadow). Off, its
+    /// whole illumination volume is lit, and the media do not dim the light
+    /// on its way (Cycles traces no shadow ray for it). Default true.
+    #[serde(default = "default_true", skip_serializing_if = "is_true")]
+    pub casts_shadows: bool,
 }
 
 /// Blender's Spot lamp: a point light with Cycles' spot mask
@@ -410,6 +424,11 @@ pub struct SpotLight {
     /// IES profile. Default none.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub ies: Option<IesProfileRef>,
+    /// Whether meshes shadow its light (Blender's Cast Shadow). Off, its
+    /// whole illumination volume is lit, and the media do not dim the light
+    /// on its way (Cycles traces no shadow ray for it). Default true.
+    #[serde(default = "default_true", skip_serializing_if = "is_true")]
+    pub casts_shadows: bool,
 }
 
 /// Parallel light through a planar convex or concave polygon (a window).
@@ -430,6 +449,10 @@ pub struct WindowLight {
     /// The window polygon's corners in order, m; ≥ 3, planar to 1e-6
     /// relative, not parallel to the light direction.
     pub aperture: Vec<[f64; 3]>,
+    /// Whether meshes shadow its light (as Blender's Cast Shadow). Off, its
+    /// whole prism is lit, undimmed between the window and each point. Default true.
+    #[serde(default = "default_true", skip_serializing_if = "is_true")]
+    pub casts_shadows: bool,
 }
 
 /// Relative luminous intensity distribution of a point light, 1 on the axis
@@ -964,6 +987,10 @@ fn default_layers() -> Vec<LayerKind> {
 fn default_tolerance() -> f64 {
     1e-4
 }
+fn is_true(v: &bool) -> bool {
+    *v
+}
+
 fn default_true() -> bool {
     true
 }

@@ -134,6 +134,7 @@ fn isotropic_point_light_matches_sun_et_al_2005_airlight() {
             continue;
         }
         let pl = PointLight {
+            casts_shadows: true,
             name: "p".into(),
             position: light_pos.to_array(),
             orientation: Orientation::QuaternionWxyz([1.0, 0.0, 0.0, 0.0]),
@@ -145,6 +146,7 @@ fn isotropic_point_light_matches_sun_et_al_2005_airlight() {
         };
         let lights = StageLights {
             points: vec![PreparedPoint {
+                casts_shadows: true,
                 light: PointSource::from_point(&pl, [1.0; 3], None),
                 shadows: None,
             }],
@@ -232,6 +234,9 @@ struct BruteScene<'a> {
     sigma_t: f64,
     phase: Phase,
     tris: &'a [[DVec3; 3]],
+    /// Whether the medium dims the light on its way to the point (Cycles: not
+    /// for a light that casts no shadows, whose shadow ray it never traces).
+    light_path_dims: bool,
 }
 
 impl BruteScene<'_> {
@@ -246,7 +251,8 @@ impl BruteScene<'_> {
         let r = v.length();
         let w = v / r;
         let mu = -d.dot(w);
-        self.sigma_s * self.phase.eval(mu) * self.spot.intensity * self.spot.mask(w) / (r * r) * (-self.sigma_t * (t + r)).exp()
+        let path = if self.light_path_dims { t + r } else { t };
+        self.sigma_s * self.phase.eval(mu) * self.spot.intensity * self.spot.mask(w) / (r * r) * (-self.sigma_t * path).exp()
     }
 
     fn simpson(&self, o: DVec3, d: DVec3, a: f64, b: f64, fa: f64, fm: f64, fb: f64, whole: f64, eps: f64, depth: u32) -> f64 {
@@ -404,6 +410,7 @@ struct Case {
 /// returns (rays, honest count, within-tolerance count, worst rel error).
 fn run_case(case: &Case, rays: &[(DVec3, DVec3)], tol: f64) -> (usize, usize, usize, f64) {
     let spot = SpotLight {
+        casts_shadows: true,
         name: "s".into(),
         position: case.light_pos.to_array(),
         orientation: Orientation::QuaternionWxyz(quat_for_axis(case.axis)),
@@ -418,6 +425,7 @@ fn run_case(case: &Case, rays: &[(DVec3, DVec3)], tol: f64) -> (usize, usize, us
         None => PointSource::from_spot(&spot, [1.0; 3], None),
         Some(q) => PointSource::from_point(
             &PointLight {
+                casts_shadows: true,
                 name: "n".into(),
                 position: spot.position,
                 orientation: spot.orientation.clone(),
@@ -437,7 +445,11 @@ fn run_case(case: &Case, rays: &[(DVec3, DVec3)], tol: f64) -> (usize, usize, us
     let positions: Vec<DVec3> = case.tris.iter().flat_map(|t| t.iter().copied()).collect();
     let indices: Vec<[u32; 3]> = (0..case.tris.len() as u32).map(|k| [3 * k, 3 * k + 1, 3 * k + 2]).collect();
     let mut lights = StageLights {
-        points: vec![PreparedPoint { light: src, shadows: None }],
+        points: vec![PreparedPoint {
+            light: src,
+            shadows: None,
+            casts_shadows: true,
+        }],
         windows: vec![],
         dark: vec![],
     };
@@ -465,6 +477,7 @@ fn run_case(case: &Case, rays: &[(DVec3, DVec3)], tol: f64) -> (usize, usize, us
         sigma_t: case.sigma_s + case.sigma_a,
         phase: case.phase,
         tris: &case.tris,
+        light_path_dims: true,
     };
     let (mut honest, mut within, mut worst) = (0, 0, 0.0f64);
     for (o, d) in rays {
@@ -668,6 +681,7 @@ fn ray_exactly_through_the_light_is_finite_and_reported() {
     let c = base_case();
     let src = PointSource::from_spot(
         &SpotLight {
+            casts_shadows: true,
             name: "s".into(),
             position: c.light_pos.to_array(),
             orientation: Orientation::QuaternionWxyz([1.0, 0.0, 0.0, 0.0]),
@@ -682,7 +696,11 @@ fn ray_exactly_through_the_light_is_finite_and_reported() {
         None,
     );
     let lights = StageLights {
-        points: vec![PreparedPoint { light: src, shadows: None }],
+        points: vec![PreparedPoint {
+            light: src,
+            shadows: None,
+            casts_shadows: true,
+        }],
         windows: vec![],
         dark: vec![],
     };
@@ -778,6 +796,7 @@ fn window_light_with_occluder_matches_brute_force() {
     let mut lights = StageLights {
         points: vec![],
         windows: vec![PreparedWindow {
+            casts_shadows: true,
             light: WindowSource::new("w", to_light, [irradiance; 3], &corners),
             shadows: None,
         }],
@@ -955,6 +974,7 @@ fn asymmetric_ies_gets_an_elliptical_volume_with_unchanged_results() {
     let axis = DVec3::new(0.2, 0.1, -1.0).normalize();
     let q = glam::DQuat::from_rotation_arc(DVec3::NEG_Z, axis) * glam::DQuat::from_rotation_z(0.4);
     let spot = SpotLight {
+        casts_shadows: true,
         name: "washer".into(),
         position: [0.0, 0.0, 4.0],
         orientation: Orientation::QuaternionWxyz([q.w, q.x, q.y, q.z]),
@@ -971,7 +991,11 @@ fn asymmetric_ies_gets_an_elliptical_volume_with_unchanged_results() {
     circular.ellipse = None;
     let media = [world(0.05, 0.01, Phase::Hg(0.3))];
     let lights = |src: PointSource<3>| StageLights {
-        points: vec![PreparedPoint { light: src, shadows: None }],
+        points: vec![PreparedPoint {
+            light: src,
+            shadows: None,
+            casts_shadows: true,
+        }],
         windows: vec![],
         dark: vec![],
     };
@@ -1078,6 +1102,7 @@ fn topology_code_of_a_traced_ray_equals_the_geometric_one() {
     let mut rng = Rng(0x5eed_70b0);
     let spot = |name: &str, pos: DVec3, axis: DVec3, size: f64, blend: f64| {
         let s = SpotLight {
+            casts_shadows: true,
             name: name.into(),
             position: pos.to_array(),
             orientation: Orientation::QuaternionWxyz(quat_for_axis(axis)),
@@ -1089,6 +1114,7 @@ fn topology_code_of_a_traced_ray_equals_the_geometric_one() {
             ies: None,
         };
         PreparedPoint {
+            casts_shadows: true,
             light: PointSource::from_spot(&s, [1.0; 3], None),
             shadows: None,
         }
@@ -1126,4 +1152,123 @@ fn topology_code_of_a_traced_ray_equals_the_geometric_one() {
     }
     assert!(codes.len() >= 8, "only {} distinct codes", codes.len());
     assert!(lights.topology_bits() <= 62);
+}
+
+/// Closest hit of the ray `o + t·d`, t > 0, with the triangles (Möller–Trumbore), or ∞.
+fn closest_hit(o: DVec3, d: DVec3, tris: &[[DVec3; 3]]) -> f64 {
+    let mut best = f64::INFINITY;
+    for tri in tris {
+        let (e1, e2) = (tri[1] - tri[0], tri[2] - tri[0]);
+        let p = d.cross(e2);
+        let det = e1.dot(p);
+        if det.abs() < 1e-300 {
+            continue;
+        }
+        let s = o - tri[0];
+        let u = s.dot(p) / det;
+        let q = s.cross(e1);
+        let v = d.dot(q) / det;
+        let t = e2.dot(q) / det;
+        if (0.0..=1.0).contains(&u) && v >= 0.0 && u + v <= 1.0 && t > 0.0 {
+            best = best.min(t);
+        }
+    }
+    best
+}
+
+/// Blender's Ray Visibility (a mesh's Camera and Shadow) and a lamp's Cast Shadow, through a
+/// whole render: each pixel (point-sampled) against the brute force, whose view ray ends at
+/// the first mesh the camera sees and whose light is blocked by the meshes that cast shadows.
+/// A lamp without shadows is not dimmed on its way either: Cycles traces no shadow ray for it,
+/// and the medium's extinction along the light path is applied on that ray (measured through
+/// the add-on: `test_ray_visibility_and_cast_shadow_match_cycles`).
+/// A box hangs in a spot's cone; the camera sees the box and the shadowed cone below it.
+#[test]
+fn ray_visibility_and_cast_shadow_through_a_render() {
+    use tyndall_core::geometry::camera::CameraRays;
+    use tyndall_core::{Scene, render};
+    let (w, h) = (12usize, 8usize);
+    let boxed = cube(DVec3::new(0.0, 0.0, 2.0), DVec3::new(0.5, 0.5, 0.3));
+    let mut totals = Vec::new();
+    for (light_shadows, mesh_camera, mesh_shadows) in [(true, true, true), (true, true, false), (true, false, true), (false, true, true)] {
+        let positions: Vec<[f64; 3]> = boxed.iter().flat_map(|t| t.iter().map(|v| v.to_array())).collect();
+        let triangles: Vec<[u32; 3]> = (0..boxed.len() as u32).map(|k| [3 * k, 3 * k + 1, 3 * k + 2]).collect();
+        let json = serde_json::json!({
+            "version": 1,
+            "camera": {"type": "perspective", "position": [0.3, -6.0, 1.2], "resolution": [w, h],
+                       "orientation": {"look_at": {"target": [0.0, 0.0, 1.4], "up": [0, 0, 1]}}},
+            "meshes": [{"name": "box", "positions": positions, "triangles": triangles,
+                        "visible_to_camera": mesh_camera, "casts_shadows": mesh_shadows}],
+            "lights": [{"type": "spot", "name": "s", "position": [0.0, 0.0, 4.0], "power_w": 800.0,
+                        "spot_size_deg": 60.0, "spot_blend": 0.2, "casts_shadows": light_shadows}],
+            "media": [{"type": "homogeneous", "name": "haze", "scattering": 0.1, "phase": {"type": "isotropic"}}],
+            "output": {"layers": ["inscatter", "depth"], "tolerance": 1e-7, "spectral": "never",
+                       "pixel_filter": {"type": "none"}, "interpolate_smooth_pixels": false, "skip_unlit_tiles": false}
+        });
+        let scene = Scene::from_json_str(&json.to_string(), "<t>").unwrap();
+        let (img, report) = render(&scene, None).unwrap();
+        // The interpolation of smooth pixels and the unlit tiles (on by default) agree.
+        let mut fast = scene.clone();
+        (fast.output.interpolate_smooth_pixels, fast.output.skip_unlit_tiles) = (true, true);
+        fast.output.layers = vec![tyndall_core::scene::LayerKind::Inscatter];
+        let (quick, _) = render(&fast, None).unwrap();
+        for (a, b) in img.inscatter.iter().zip(&quick.inscatter) {
+            assert!(
+                (a[0] - b[0]).abs() <= 1e-6 * a[0].abs().max(1e-3),
+                "interpolated {} against traced {}",
+                b[0],
+                a[0]
+            );
+        }
+        let cam = CameraRays::new(&scene.camera);
+        let cos_half = 30f64.to_radians().cos();
+        let shadow_tris: &[[DVec3; 3]] = if light_shadows && mesh_shadows { &boxed } else { &[] };
+        let brute = BruteScene {
+            spot: RefSpot {
+                pos: DVec3::new(0.0, 0.0, 4.0),
+                axis: DVec3::NEG_Z,
+                cos_half,
+                smooth: 0.2 * (1.0 - cos_half),
+                intensity: 800.0 / (4.0 * PI),
+                nishita_q: None,
+            },
+            sigma_s: 0.1,
+            sigma_t: 0.1,
+            phase: Phase::Iso,
+            tris: shadow_tris,
+            light_path_dims: light_shadows,
+        };
+        let (mut total, mut hits, mut worst) = (0.0, 0, 0.0f64);
+        for y in 0..h {
+            for x in 0..w {
+                let dir = cam.direction(x as f64 + 0.5, y as f64 + 0.5);
+                let start = cam.start_distance(dir);
+                let o = cam.position + dir * start;
+                let end = if mesh_camera { closest_hit(o, dir, &boxed) } else { f64::INFINITY };
+                let want = brute.brute(o, dir, end);
+                let got = f64::from(img.inscatter[y * w + x][0]);
+                let rel = (got - want).abs() / want.max(1e-30);
+                worst = worst.max(rel);
+                assert!(
+                    rel <= 2e-6,
+                    "{light_shadows} {mesh_camera} {mesh_shadows}: pixel ({x}, {y}) {got:e} against {want:e}"
+                );
+                let depth = img.depth[y * w + x];
+                assert_eq!(end.is_finite(), f64::from(depth) < 1e9, "pixel ({x}, {y}) depth {depth}");
+                hits += end.is_finite() as u32;
+                total += got;
+            }
+        }
+        let plan = serde_json::to_string(&report).unwrap();
+        println!(
+            "shadows {light_shadows}, camera {mesh_camera}, mesh shadows {mesh_shadows}: {hits} box pixels, sum {total:.6e}, worst rel {worst:.1e}"
+        );
+        assert_eq!(plan.contains("casts_shadows false"), !(light_shadows && mesh_shadows), "{plan}");
+        totals.push((hits, total));
+    }
+    // Not vacuous: the box is seen, and each switch changes the image.
+    assert!(totals[0].0 >= 6 && totals[2].0 == 0, "{totals:?}");
+    assert!(totals[1].1 > totals[0].1 * 1.05 && totals[2].1 > totals[0].1 * 1.05, "{totals:?}");
+    // Without the light's shadows the medium does not dim its light either (Cycles).
+    assert!(totals[3].1 > totals[1].1 * 1.02, "{totals:?}");
 }

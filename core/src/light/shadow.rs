@@ -492,6 +492,12 @@ pub struct ShadowWedges {
     pub triangles_used: usize,
     /// Triangles outside it (cast nothing for this light).
     pub triangles_left_out: usize,
+    /// Whether view rays may pass through the casters (a mesh the camera does
+    /// not see casts shadows): then a ray's visibility of the light also
+    /// changes where it crosses a caster's face, not only at wedge crossings,
+    /// and the caller splits its pieces there. Default false: a view ray ends
+    /// at the first caster it meets.
+    pub view_rays_cross_casters: bool,
 }
 
 /// One mesh as indexed world-space triangles.
@@ -638,6 +644,7 @@ impl ShadowWedges {
             free_side,
             triangles_used: used,
             triangles_left_out: left_out,
+            view_rays_cross_casters: false,
         };
         s.build_bvh();
         s

@@ -24,7 +24,7 @@ pub mod smooth;
 pub mod stage;
 pub mod unlit;
 
-use crate::geometry::bvh::Bvh;
+use crate::geometry::bvh::{Bvh, Triangle};
 use crate::geometry::camera::CameraRays;
 use crate::geometry::world_triangles;
 use crate::io::ImageLayer;
@@ -38,6 +38,7 @@ use crate::medium::phase::PhaseFunction;
 use crate::medium::{LightSet, PreparedMedium, RayResult, SunSource, ViewRay};
 use crate::numeric::integrate_adaptive;
 use crate::report::Report;
+use crate::scene::Mesh;
 use crate::scene::{
     AmbientLight, Bounds, Coefficient, EllipsoidMedium, FogLayerMedium, HeightFogMedium, HomogeneousMedium, LayerKind,
     LayeredHeightFieldMedium, Light, LightSpectrum, Medium, Scene, SpectralMode, SunLight,
@@ -45,6 +46,7 @@ use crate::scene::{
 use crate::spectrum::{self, SPECTRAL_SAMPLES};
 use glam::DVec3;
 use rayon::prelude::*;
+use std::borrow::Cow;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Instant;
 
@@ -621,7 +623,16 @@ fn prepare_stage_lights<const C: usize>(scene: &Scene, report: &mut Report) -> R
                     }
                 }
                 report.plan.computed(label, describe_point(&src, power_w));
-                out.points.push(stage::PreparedPoint { light: src, shadows: None });
+                let casts_shadows = match l {
+                    Light::Point(p) => p.casts_shadows,
+                    Light::Spot(p) => p.casts_shadows,
+                    _ => true,
+                };
+                out.points.push(stage::PreparedPoint {
+                    light: src,
+                    shadows: None,
+                    casts_shadows,
+                });
             }
             Light::Window(wl) => {
                 if wl.irradiance_w_m2 == 0.0 || wl.color.iter().all(|c| *c == 0.0) {
@@ -646,7 +657,11 @@ fn prepare_stage_lights<const C: usize>(scene: &Scene, report: &mut Report) -> R
                         wl.irradiance_w_m2
                     ),
                 );
-                out.windows.push(stage::PreparedWindow { light: src, shadows: None });
+                out.windows.push(stage::PreparedWindow {
+                    light: src,
+                    shadows: None,
+                    casts_shadows: wl.casts_shadows,
+                });
             }
             _ => {}
         }
@@ -688,9 +703,22 @@ fn describe_point<const C: usize>(src: &crate::light::PointSource<C>, power_w: f
 }
 
 /// Shadow casters per stage light: silhouette wedges of the triangles inside its volume.
-fn prepare_stage_shadows<const C: usize>(scene: &Scene, stage_lights: &mut stage::StageLights<C>, report: &mut Report) {
-    let world: Vec<(Vec<DVec3>, &[[u32; 3]])> = scene
-        .meshes
+fn prepare_stage_shadows<const C: usize>(meshes: &[Mesh], stage_lights: &mut stage::StageLights<C>, report: &mut Report) {
+    let names = stage_lights.names();
+    let flags = stage_lights
+        .points
+        .iter()
+        .map(|p| p.casts_shadows)
+        .chain(stage_lights.windows.iter().map(|w| w.casts_shadows));
+    for (name, casts) in names.iter().zip(flags) {
+        if !casts {
+            report.plan.left_out(
+                format!("shadows of \"{name}\""),
+                "casts_shadows false (Blender's Cast Shadow off): its whole illumination volume is lit, and undimmed by the media on the light's way (Cycles traces no shadow ray for it)",
+            );
+        }
+    }
+    let world: Vec<(Vec<DVec3>, &[[u32; 3]])> = meshes
         .iter()
         .map(|m| {
             let mat = m.transform.to_matrix();
@@ -708,13 +736,13 @@ fn prepare_stage_shadows<const C: usize>(scene: &Scene, stage_lights: &mut stage
         })
         .collect();
     if indexed.iter().all(|m| m.triangles.is_empty()) {
-        report
-            .plan
-            .left_out("volumetric shadows", "no meshes: every stage light's volume is fully lit");
+        report.plan.left_out(
+            "volumetric shadows",
+            "no shadow-casting meshes: every stage light's volume is fully lit",
+        );
         return;
     }
     stage_lights.build_shadows(&indexed);
-    let names = stage_lights.names();
     let casters: Vec<Option<&crate::light::shadow::ShadowWedges>> = stage_lights
         .points
         .iter()
@@ -1039,9 +1067,16 @@ struct PixelOut<const C: usize> {
 /// position; for a window light, back along the light's direction to the
 /// window plane (the prism's light enters there; nothing on the light's side).
 fn light_path_depth<const C: usize>(stage_lights: &stage::StageLights<C>, media: &[PreparedMedium<C>], k: usize, p: DVec3) -> [f64; C] {
+    // A light without shadows (Cycles traces no shadow ray for it): undimmed.
     let end = if let Some(pt) = stage_lights.points.get(k) {
+        if !pt.casts_shadows {
+            return [0.0; C];
+        }
         pt.light.position
     } else if let Some(wl) = stage_lights.windows.get(k - stage_lights.points.len()) {
+        if !wl.casts_shadows {
+            return [0.0; C];
+        }
         let s = wl.light.distance_to_window(p);
         if s.is_nan() || s <= 0.0 {
             return [0.0; C];
@@ -1064,6 +1099,7 @@ fn light_path_depth<const C: usize>(stage_lights: &stage::StageLights<C>, media:
 fn shade_pixel<const C: usize>(
     cam: &CameraRays,
     bvh: Option<&Bvh>,
+    shadow_bvh: Option<&Bvh>,
     media: &[PreparedMedium<C>],
     lights: &LightSet<C>,
     stage_lights: &stage::StageLights<C>,
@@ -1136,7 +1172,7 @@ fn shade_pixel<const C: usize>(
         let sh = STAGE_SCRATCH.with(|cell| {
             let mut scratch = cell.borrow_mut();
             scratch.topology = topology;
-            stage_lights.shade(&ray, media, bvh, tolerance, &mut scratch, per_light, to_rgb)
+            stage_lights.shade(&ray, media, shadow_bvh, tolerance, &mut scratch, per_light, to_rgb)
         });
         for c in 0..C {
             result.inscatter[c] += sh.inscatter[c];
@@ -1332,8 +1368,45 @@ fn render_channels<const C: usize, const K: usize>(
     let tolerance = scene.output.tolerance;
     let mut t = report.time("plan", t0);
 
-    let (tris, owner) = world_triangles(&scene.meshes);
-    report.stats.triangles = tris.len() as u64;
+    // The meshes the camera sees and those that cast shadows (Blender's Ray
+    // Visibility > Camera and > Shadow): one list unless a mesh turns one off.
+    let split = scene.meshes.iter().any(|m| !m.visible_to_camera || !m.casts_shadows);
+    let (camera_meshes, shadow_meshes): (Cow<'_, [Mesh]>, Cow<'_, [Mesh]>) = if split {
+        let pick = |f: fn(&Mesh) -> bool| -> Cow<'_, [Mesh]> { Cow::Owned(scene.meshes.iter().filter(|m| f(m)).cloned().collect()) };
+        (pick(|m| m.visible_to_camera), pick(|m| m.casts_shadows))
+    } else {
+        (Cow::Borrowed(scene.meshes.as_slice()), Cow::Borrowed(scene.meshes.as_slice()))
+    };
+    if split {
+        let see_through = scene.meshes.iter().filter(|m| !m.visible_to_camera && m.casts_shadows).count();
+        let no_shadow = scene.meshes.iter().filter(|m| m.visible_to_camera && !m.casts_shadows).count();
+        let neither = scene.meshes.iter().filter(|m| !m.visible_to_camera && !m.casts_shadows).count();
+        for (n, what, why) in [
+            (
+                see_through,
+                "meshes in view rays",
+                "visible_to_camera false: view rays pass through them (they still cast shadows)",
+            ),
+            (
+                no_shadow,
+                "meshes in the lights' shadows",
+                "casts_shadows false: they shadow no light (they still end view rays)",
+            ),
+            (
+                neither,
+                "meshes",
+                "visible_to_camera and casts_shadows false: nothing to do with them",
+            ),
+        ] {
+            if n > 0 {
+                report.plan.left_out(format!("{n} {what}"), why);
+            }
+        }
+    }
+    let (tris, owner) = world_triangles(&camera_meshes);
+    // The shadow casters' triangles when they are not the camera's.
+    let shadow_tris: Option<Vec<Triangle>> = split.then(|| world_triangles(&shadow_meshes).0);
+    report.stats.triangles = tris.len() as u64 + shadow_tris.as_ref().map_or(0, |t| t.len() as u64);
     // What the smoothness test of [`smooth`] needs of the scene: the
     // surfaces' planes and each light's volume and shadow casters. Only when
     // the media and the lights' distributions are smooth.
@@ -1361,14 +1434,23 @@ fn render_channels<const C: usize, const K: usize>(
             Err("too many lights and cones for the 62-bit topology code")
         } else {
             let eye = cam.position;
-            let planes = smooth::Planes::new(&scene.meshes, &tris);
+            let planes = smooth::Planes::new(&camera_meshes, &tris);
+            // The casters' planes: the camera's unless the shadow casters differ.
+            let own_shadow_planes = shadow_tris.as_ref().map(|st| (smooth::Planes::new(&shadow_meshes, st), st));
+            let (caster_planes, caster_tris) = match &own_shadow_planes {
+                Some((p, st)) => (p, st.as_slice()),
+                None => (&planes, tris.as_slice()),
+            };
             let margin = 1e-9 * (1.0 + eye.abs().max_element());
             let points = stage_lights.points.iter().map(|p| {
+                if !p.casts_shadows {
+                    return smooth::Casters::None;
+                }
                 let l = &p.light;
                 let (apex, axis, cos_reach) = (l.position, l.frame.axis, l.cos_reach);
                 smooth::Casters::of(
-                    &tris,
-                    &planes,
+                    caster_tris,
+                    caster_planes,
                     eye,
                     |c, r| stage::sphere_may_touch_cone(apex, axis, cos_reach, c, r),
                     |n, offset| n.dot(apex) - offset > margin,
@@ -1440,21 +1522,39 @@ fn render_channels<const C: usize, const K: usize>(
     let bvh = if tris.is_empty() {
         report
             .plan
-            .left_out("ray casting", "no meshes: every view ray runs to the clip end");
+            .left_out("ray casting", "no meshes the camera sees: every view ray runs to the clip end");
         None
     } else {
         report.plan.computed(
-            format!("{} triangles in {} meshes", tris.len(), scene.meshes.len()),
+            format!("{} triangles in {} meshes", tris.len(), camera_meshes.len()),
             "binned-SAH BVH, first hit per view ray",
         );
         Some(Bvh::build(tris))
     };
+    // The shadow rays' BVH: the view rays' unless the shadow casters differ.
+    let own_shadow_bvh = match shadow_tris {
+        Some(st) if !st.is_empty() => {
+            report.plan.computed(
+                format!("{} shadow-casting triangles in {} meshes", st.len(), shadow_meshes.len()),
+                "a BVH of their own for the shadow rays (the camera sees other meshes)",
+            );
+            Some(Bvh::build(st))
+        }
+        _ => None,
+    };
+    let shadow_bvh = if split { own_shadow_bvh.as_ref() } else { bvh.as_ref() };
     t = report.time("bvh", t);
     if cancelled() {
         return Err(RenderError::Cancelled);
     }
     if !stage_lights.is_empty() {
-        prepare_stage_shadows(scene, &mut stage_lights, report);
+        prepare_stage_shadows(&shadow_meshes, &mut stage_lights, report);
+        if scene.meshes.iter().any(|m| !m.visible_to_camera && m.casts_shadows) {
+            let wedges = stage_lights.points.iter_mut().map(|p| &mut p.shadows);
+            for sw in wedges.chain(stage_lights.windows.iter_mut().map(|w| &mut w.shadows)).flatten() {
+                sw.view_rays_cross_casters = true;
+            }
+        }
         if media.is_empty() {
             report
                 .plan
@@ -1519,6 +1619,7 @@ fn render_channels<const C: usize, const K: usize>(
         let p = shade_pixel(
             &cam,
             bvh.as_ref(),
+            shadow_bvh,
             &media,
             &lights,
             &stage_lights,

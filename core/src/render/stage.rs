@@ -71,6 +71,8 @@ pub struct PreparedPoint<const C: usize> {
     pub light: PointSource<C>,
     /// Silhouette wedges of the occluders inside its volume (`None`: no occluders).
     pub shadows: Option<ShadowWedges>,
+    /// Whether meshes shadow it (`false`: no wedges are built, its volume is lit).
+    pub casts_shadows: bool,
 }
 
 /// A window light with its shadow casters.
@@ -80,6 +82,8 @@ pub struct PreparedWindow<const C: usize> {
     pub light: WindowSource<C>,
     /// Silhouette wedges of the occluders inside its prism.
     pub shadows: Option<ShadowWedges>,
+    /// Whether meshes shadow it (`false`: no wedges are built, its prism is lit).
+    pub casts_shadows: bool,
 }
 
 /// All stage lights of a render.
@@ -360,7 +364,7 @@ impl<const C: usize> StageLights<C> {
             return;
         }
         // One light per task: the wedges and the visibility grid of each are independent.
-        self.points.par_iter_mut().for_each(|p| {
+        self.points.par_iter_mut().filter(|p| p.casts_shadows).for_each(|p| {
             let l = &p.light;
             let (apex, axis, cos_reach) = (l.position, l.frame.axis, l.cos_reach);
             let half = cos_reach.clamp(-1.0, 1.0).acos();
@@ -368,7 +372,7 @@ impl<const C: usize> StageLights<C> {
             let (fx, fy) = (l.frame.x, l.frame.y);
             p.shadows = Some(ShadowWedges::build(Projector::Point(apex), meshes, keep).with_visibility_grid(axis, fx, fy, half, meshes));
         });
-        for w in &mut self.windows {
+        for w in self.windows.iter_mut().filter(|w| w.casts_shadows) {
             let light = w.light.clone();
             let keep = move |centre: DVec3, radius: f64| light.may_touch_sphere(centre, radius);
             w.shadows = Some(ShadowWedges::build(Projector::Directional(w.light.to_light), meshes, keep));
@@ -519,9 +523,26 @@ impl<const C: usize> StageLights<C> {
         scratch.lit.clear();
         let mut rays = 0;
         match (shadows, bvh) {
-            (Some(sw), Some(_)) if sw.triangles_used > 0 => {
+            (Some(sw), Some(bvh)) if sw.triangles_used > 0 => {
                 for &(a, b) in &scratch.pieces {
-                    rays += sw.lit_segments(ray.origin, ray.dir, a, b, &mut scratch.cuts, &mut scratch.lit, visible);
+                    let mut t = a;
+                    if sw.view_rays_cross_casters {
+                        // The ray passes through casters the camera does not see: at each
+                        // of their faces it crosses, the light's visibility may change
+                        // without a wedge crossing. (At most 64 faces per piece; beyond,
+                        // the rest is one piece, classified by wedges alone.)
+                        for _ in 0..64 {
+                            match bvh.closest_hit(ray.origin, ray.dir, t, b) {
+                                Some(h) if h.t > t && h.t < b => {
+                                    rays += sw.lit_segments(ray.origin, ray.dir, t, h.t, &mut scratch.cuts, &mut scratch.lit, visible);
+                                    t = h.t;
+                                }
+                                Some(h) if h.t <= t => t = t.next_up(),
+                                _ => break,
+                            }
+                        }
+                    }
+                    rays += sw.lit_segments(ray.origin, ray.dir, t, b, &mut scratch.cuts, &mut scratch.lit, visible);
                 }
             }
             _ => scratch.lit.extend_from_slice(&scratch.pieces),
@@ -635,7 +656,11 @@ impl<const C: usize> StageLights<C> {
                 return [0.0; C];
             }
             let mu = -d.dot(w);
-            let light_depth = total_depth(media, |m| m.optical_depth_between(x, l.position));
+            let light_depth = if p.casts_shadows {
+                total_depth(media, |m| m.optical_depth_between(x, l.position))
+            } else {
+                [0.0; C]
+            };
             let m = medium_factor(media, ray, t, x, mu, light_depth);
             let k = f / h;
             let mut val = [0.0; C];
@@ -651,6 +676,7 @@ impl<const C: usize> StageLights<C> {
         // μ = −d·ω = −sin u, and the optical depths are σ_t·t − offset and σ_t·r:
         // one sine and cosine, one division and one exponential per point.
         let plain = if h == h_true { plain_media(media, ray, l.position) } else { None };
+        let light_dims = p.casts_shadows;
         let n_hat = (o + d * tc - l.position) / h;
         let (na, da) = (n_hat.dot(l.frame.axis), d.dot(l.frame.axis));
         let axial = l.is_axial();
@@ -694,7 +720,9 @@ impl<const C: usize> StageLights<C> {
                     }
                 }
             }
-            let path = t + h * sec;
+            // Without shadows Cycles traces no shadow ray, so the medium
+            // does not dim the light on its way to x either.
+            let path = if light_dims { t + h * sec } else { t };
             let k = f * inv_h;
             let mut val = [0.0; C];
             let grey_tr = if p.grey {
@@ -721,7 +749,9 @@ impl<const C: usize> StageLights<C> {
                 .fold(0.0f64, |x, y| x.max(*y))
         };
         // Optical thickness along the light path at the closest approach, per metre.
-        let light_rate = {
+        let light_rate = if !p.casts_shadows {
+            0.0
+        } else {
             let x = o + d * tc.max(0.0);
             let tau = total_depth(media, |m| m.optical_depth_between(x, l.position))
                 .iter()
@@ -942,7 +972,11 @@ impl<const C: usize> StageLights<C> {
         let point = |t: f64| -> [f64; C] {
             let x = o + d * t;
             let s = l.distance_to_window(x);
-            let light_depth = total_depth(media, |m| m.optical_depth_between(x, x + l.to_light * s));
+            let light_depth = if w.casts_shadows {
+                total_depth(media, |m| m.optical_depth_between(x, x + l.to_light * s))
+            } else {
+                [0.0; C]
+            };
             let m = medium_factor(media, ray, t, x, mu, light_depth);
             let mut val = [0.0; C];
             for c in 0..C {
