@@ -267,8 +267,10 @@ def _export_usd(context: bpy.types.Context, path: str, built: BuiltScene) -> str
     """Blender's own USD exporter, with the medium and output as ``tyndall:`` custom properties.
 
     A temporary Empty carries ``tyndall:medium:*`` (tyndall_usd reads it as the medium), the
-    camera ``tyndall:output:*`` and each IES light's data ``tyndall:ies:file``/``strength``; all
-    are removed again. Returns "" or the reason it failed.
+    camera ``tyndall:output:*``, each IES light's data ``tyndall:ies:file``/``strength``, a lamp
+    without Cast Shadow ``tyndall:castsShadows`` and a mesh object without Ray Visibility Camera
+    or Shadow ``tyndall:visibleToCamera``/``castsShadows``; all are removed again. Returns "" or
+    the reason it failed.
     """
     if not hasattr(bpy.ops.wm, "usd_export"):
         return "this Blender has no USD exporter"
@@ -302,6 +304,14 @@ def _export_usd(context: bpy.types.Context, path: str, built: BuiltScene) -> str
             if "ies" in lt and obj is not None and obj.type == "LIGHT":
                 setp(obj.data, "tyndall:ies:file", lt["ies"]["file"])
                 setp(obj.data, "tyndall:ies:strength", float(lt["ies"]["strength"]))
+            if not lt.get("casts_shadows", True) and obj is not None and obj.type == "LIGHT":
+                setp(obj.data, "tyndall:castsShadows", 0)
+        # Nor does it write ray visibility: an object's flags go on its Xform prim.
+        for m in built.scene["meshes"]:
+            mobj = scene.objects.get(m.get("name", ""))
+            for key, prop in (("visible_to_camera", "tyndall:visibleToCamera"), ("casts_shadows", "tyndall:castsShadows")):
+                if not m.get(key, True) and mobj is not None:
+                    setp(mobj, prop, 0)
         if cam is not None:
             setp(cam, "tyndall:output:resolution", list(built.scene["camera"]["resolution"]))
             # tyndall_usd 0.1 reads the five basic layers only (not the per-light ones)

@@ -560,6 +560,8 @@ def test_round_trip_through_usd_keeps_every_light_type(addon: None, tmp_path: Pa
     point.location, point.data.energy, point.data.color = (2.0, -1.0, 3.0), 150.0, (0.3, 0.6, 1.0)
     point.data.shadow_soft_size = 0.1
     point.data.normalize = False  # Blender's exporter then writes no inputs:normalize (USD's default: off)
+    point.data.use_shadow = False  # → tyndall:castsShadows on the light prim
+    objs["cube"].visible_camera = False  # → tyndall:visibleToCamera on the cube's Xform
     sun = bpy.data.objects.new("Sun", bpy.data.lights.new("Sun", "SUN"))
     sc.collection.objects.link(sun)
     sun.rotation_euler, sun.data.energy, sun.data.angle = (0.6, 0.1, 0.9), 4.0, math.radians(1.2)
@@ -599,6 +601,12 @@ def test_round_trip_through_usd_keeps_every_light_type(addon: None, tmp_path: Pa
                 assert u[k] == pytest.approx(v, rel=1e-5, abs=1e-7), (lt["name"], k)
             elif k in ("color", "position", "direction_to_sun"):
                 assert u[k] == pytest.approx(v, rel=1e-5, abs=1e-7), (lt["name"], k)
+    direct_fill = next(x for x in direct["lights"] if x["name"] == "Fill")
+    assert from_usd["Fill"]["casts_shadows"] is False and direct_fill["casts_shadows"] is False
+    (cube_d,) = direct["meshes"]
+    (cube_u,) = leg["scene"]["meshes"]
+    assert cube_d["visible_to_camera"] is False and cube_u["visible_to_camera"] is False
+    assert "casts_shadows" not in cube_d and "casts_shadows" not in cube_u
     cam_u, cam_d = leg["scene"]["camera"], direct["camera"]
     for k in ("focal_length_mm", "shift_x", "shift_y", "clip_start_m"):
         assert cam_u[k] == pytest.approx(cam_d[k], rel=1e-5, abs=1e-7), k

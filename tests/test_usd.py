@@ -213,6 +213,35 @@ def test_unnormalized_lights_as_blender_imports_and_cycles_renders(tmp_path: Pat
     _validate(conv.scene)
 
 
+def test_shadow_and_ray_visibility_flags(tmp_path: Path) -> None:
+    """A light's UsdLux ``inputs:shadow:enable`` (or ``tyndall:castsShadows``) and a mesh's
+    ``tyndall:visibleToCamera``/``castsShadows`` (on the prim or its parent Xform, where an
+    object's custom property lands in Blender's export) become the scene's flags, and the
+    writer writes them back."""
+    stage = _stage(tmp_path)
+    lamp = UsdLux.SphereLight.Define(stage, "/World/Lamp")
+    UsdLux.ShadowAPI.Apply(lamp.GetPrim()).CreateShadowEnableAttr(False)
+    keep = UsdLux.SphereLight.Define(stage, "/World/Keep")
+    UsdLux.ShadowAPI.Apply(keep.GetPrim()).CreateShadowEnableAttr(True)
+    rig = UsdGeom.Xform.Define(stage, "/World/Box")
+    rig.GetPrim().CreateAttribute("tyndall:visibleToCamera", Sdf.ValueTypeNames.Int).Set(0)
+    box = UsdGeom.Mesh.Define(stage, "/World/Box/Box")
+    box.CreatePointsAttr([(0, 0, 0), (1, 0, 0), (0, 1, 0)])
+    box.CreateFaceVertexCountsAttr([3])
+    box.CreateFaceVertexIndicesAttr([0, 1, 2])
+    box.GetPrim().CreateAttribute("tyndall:castsShadows", Sdf.ValueTypeNames.Bool).Set(False)
+    scene = convert_stage(stage).scene
+    lights = {x["name"]: x for x in scene["lights"]}
+    assert lights["Lamp"]["casts_shadows"] is False and "casts_shadows" not in lights["Keep"]
+    (m,) = scene["meshes"]
+    assert m["visible_to_camera"] is False and m["casts_shadows"] is False
+    _validate(scene)
+    write_stage(scene, str(tmp_path / "back.usda"))
+    again = convert_stage(str(tmp_path / "back.usda")).scene
+    assert {x["name"]: x.get("casts_shadows", True) for x in again["lights"]} == {"Lamp": False, "Keep": True}
+    assert again["meshes"][0]["visible_to_camera"] is False and again["meshes"][0]["casts_shadows"] is False
+
+
 def test_color_temperature_outside_blender_exports(tmp_path: Path) -> None:
     stage = _stage(tmp_path)
     light = UsdLux.SphereLight.Define(stage, "/World/Warm")

@@ -335,6 +335,8 @@ class _Converter:
             return None
         if ies:
             light["ies"] = ies
+        if not self.casts_shadows(prim):
+            light["casts_shadows"] = False
 
         has_shaping = prim.HasAPI(UsdLux.ShapingAPI)
         focus = _float(prim, "inputs:shaping:focus", self.time, 0.0) if has_shaping else 0.0
@@ -410,6 +412,22 @@ class _Converter:
             raise UsdSceneError(path, NS + "ies:strength", f"must be ≥ 0, got {strength}")
         return {"file": os.path.abspath(file), "strength": strength}
 
+    def casts_shadows(self, prim: Usd.Prim) -> bool:
+        """UsdLux ShadowAPI ``inputs:shadow:enable``, or ``tyndall:castsShadows`` (which the add-on
+        writes, as Blender's exporter writes neither) on the prim or its parent."""
+        for p in (prim, prim.GetParent()):
+            if _authored(p, NS + "castsShadows"):
+                return _bool(p, NS + "castsShadows", self.time, True)
+        return _bool(prim, "inputs:shadow:enable", self.time, True)
+
+    def mesh_flag(self, prim: Usd.Prim, name: str) -> bool:
+        """``tyndall:<name>`` (default true) on the mesh prim or its parent (an object's custom
+        property lands on the Xform Blender writes for it)."""
+        for p in (prim, prim.GetParent()):
+            if _authored(p, NS + name):
+                return _bool(p, NS + name, self.time, True)
+        return True
+
     def distant_light(self, prim: Usd.Prim) -> dict[str, Any]:
         path = str(prim.GetPath())
         m = self.world_matrix(prim)
@@ -483,12 +501,17 @@ class _Converter:
         if mesh.GetOrientationAttr().Get(self.time) == UsdGeom.Tokens.leftHanded:
             tris = [[a, c, b] for a, b, c in tris]
         m = self.world_matrix(prim)
-        return {
+        out: dict[str, Any] = {
             "name": prim.GetName(),
             "positions": points.tolist(),
             "triangles": tris,
             "transform": {"matrix": _geom.to_row_major(m)},
         }
+        # Ray visibility: no UsdGeom schema holds it; the add-on writes these.
+        for attr, key in (("visibleToCamera", "visible_to_camera"), ("castsShadows", "casts_shadows")):
+            if not self.mesh_flag(prim, attr):
+                out[key] = False
+        return out
 
     # -- camera
 

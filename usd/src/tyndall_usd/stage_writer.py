@@ -10,11 +10,13 @@ meshes a Blender user had (the Blender → USD → Scene → USD → Blender rou
   and ``cone:softness = spot_blend``; a ``usd_shaping`` distribution its cone angle,
   softness and focus; an IES profile ``inputs:shaping:ies:file`` (absolute path), the same
   path as ``tyndall:ies:file`` (Blender's importer keeps it as a custom property) and
-  ``tyndall:ies:strength``.
+  ``tyndall:ies:strength``; ``casts_shadows: false`` → ``ShadowAPI`` with ``shadow:enable = 0``.
 * sun → ``DistantLight``: ``inputs:intensity = strength_w_m2 / 4``,
   ``inputs:angle = angular_diameter / 2``, local +Z towards the sun.
 * ambient → untextured ``DomeLight``, ``inputs:intensity = radiance``.
-* meshes → ``Mesh`` (triangles) with their transform as ``xformOp:transform``.
+* meshes → ``Mesh`` (triangles) with their transform as ``xformOp:transform``;
+  ``visible_to_camera`` / ``casts_shadows`` false → ``tyndall:visibleToCamera`` /
+  ``tyndall:castsShadows`` = 0 (no UsdGeom schema holds ray visibility).
 * camera → ``Camera``: lengths in tenths of a stage unit (focal length, apertures, offsets);
   the aperture has the image's aspect on the fitted side; ``tyndall:output:resolution``.
 * homogeneous and height-fog media → an ``Xform`` with the ``tyndall:medium:*`` attributes.
@@ -154,6 +156,8 @@ def write_stage(
             sl.CreateColorAttr(color)
             sl.CreateRadiusAttr(float(light.get("radius_m", 0.0)))
             sl.CreateNormalizeAttr(True)
+            if not light.get("casts_shadows", True):
+                UsdLux.ShadowAPI.Apply(prim).CreateShadowEnableAttr(False)
             if kind == "spot":
                 shaping = UsdLux.ShapingAPI.Apply(prim)
                 shaping.CreateShapingConeAngleAttr(0.5 * float(light.get("spot_size_deg", 45.0)))
@@ -200,6 +204,10 @@ def write_stage(
         mesh.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
         xf = UsdGeom.Xformable(mesh.GetPrim())
         xf.AddTransformOp(UsdGeom.XformOp.PrecisionDouble).Set(_mesh_matrix(m.get("transform")))
+        # Ray visibility has no UsdGeom schema: tyndall_usd's own attributes.
+        for key, attr in (("visible_to_camera", "visibleToCamera"), ("casts_shadows", "castsShadows")):
+            if not m.get(key, True):
+                mesh.GetPrim().CreateAttribute(f"tyndall:{attr}", Sdf.ValueTypeNames.Bool).Set(False)
 
     cam = scene.get("camera")
     settings: Usd.Prim | None = None
