@@ -309,7 +309,8 @@ def _export_usd(context: bpy.types.Context, path: str, built: BuiltScene) -> str
         # Nor does it write ray visibility: an object's flags go on its Xform prim.
         for m in built.scene["meshes"]:
             mobj = scene.objects.get(m.get("name", ""))
-            for key, prop in (("visible_to_camera", "tyndall:visibleToCamera"), ("casts_shadows", "tyndall:castsShadows")):
+            flags = (("visible_to_camera", "tyndall:visibleToCamera"), ("casts_shadows", "tyndall:castsShadows"))
+            for key, prop in flags:
                 if not m.get(key, True) and mobj is not None:
                     setp(mobj, prop, 0)
         if cam is not None:
