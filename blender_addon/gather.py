@@ -317,6 +317,14 @@ def _ies_property(obj: bpy.types.Object, light: bpy.types.Light) -> IesData | No
     )
 
 
+def _links_include(collection: bpy.types.Collection | None) -> bool:
+    """Whether a light-linking collection has an entry (object or child collection) set to Include."""
+    if collection is None:
+        return False
+    entries = list(collection.collection_objects) + list(collection.collection_children)
+    return any(e.light_linking.link_state == "INCLUDE" for e in entries)
+
+
 def gather_lights(objects: list[RenderedObject], notes: list[str]) -> list[LightData]:
     """The lights among the objects Cycles renders (:func:`rendered_objects`)."""
     out = []
@@ -327,6 +335,21 @@ def gather_lights(objects: list[RenderedObject], notes: list[str]) -> list[Light
         if not obj.visible_volume_scatter:
             notes.append(f"{ro.name}: Ray Visibility > Volume Scatter is off, so it lights no haze in Cycles; left out")
             continue
+        linking = getattr(obj, "light_linking", None)
+        if linking is not None and _links_include(linking.receiver_collection):
+            # Measured (Cycles 5.0.1): a receiver collection with an Include entry lights only
+            # those; the world volume is not among them (an image of 0). Only Exclude entries:
+            # the world is lit as without linking.
+            notes.append(
+                f"{ro.name}: Light Linking > Receiver Collection includes only some objects, so it lights no "
+                "world haze in Cycles; left out"
+            )
+            continue
+        if linking is not None and linking.blocker_collection is not None:
+            notes.append(
+                f"{ro.name}: Shadow Linking (Blocker Collection) is not reproduced: in Tyndall every mesh that "
+                "casts shadows shadows it"
+            )
         light = obj.data
         color = tuple(light.color)
         if getattr(light, "use_temperature", False):
