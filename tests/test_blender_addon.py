@@ -1162,7 +1162,8 @@ def test_ray_visibility_and_cast_shadow_match_cycles(tmp_path: Path) -> None:
     """Blender's Ray Visibility (a mesh's Camera and Shadow) and a lamp's Cast Shadow, which the
     add-on used to note and ignore (Tyndall's meshes blocked the view and cast shadows): the
     spot-and-box scene of the Cycles references with the box's Shadow off, the lamp's Cast
-    Shadow off, and the box's Camera off, each through the add-on against Cycles rendered here
+    Shadow off, the box's Camera off, and an added sun without Cast Shadow, each through the
+    add-on against Cycles rendered here
     (512 samples, ≈ 1 % noise). With the switches ignored, the relative RMSE against these
     renders was 17 %, 20 % and 4.1 %. A lamp without shadows is not dimmed by the haze on its way
     either (Cycles traces no shadow ray for it, and applies the medium's extinction on that ray)."""
@@ -1171,7 +1172,7 @@ def test_ray_visibility_and_cast_shadow_match_cycles(tmp_path: Path) -> None:
     data = REPO / "tests" / "data" / "cycles"
     ref_mod = _cycles_reference_module()
     scene = json.loads((data / "spot_box_occluder.json").read_text())
-    for case in ("box Shadow off", "Cast Shadow off", "box Camera off"):
+    for case in ("box Shadow off", "Cast Shadow off", "box Camera off", "sun without Cast Shadow"):
         # A fresh scene each time: the add-on's import sets up the compositor and mutes the
         # world volume, after which Cycles would render the composite.
         resolution, ftype, fwidth = ref_mod.build_scene(scene, str(data))
@@ -1181,6 +1182,13 @@ def test_ray_visibility_and_cast_shadow_match_cycles(tmp_path: Path) -> None:
         box.visible_shadow = case != "box Shadow off"
         spot.data.use_shadow = case != "Cast Shadow off"
         box.visible_camera = case != "box Camera off"
+        if case == "sun without Cast Shadow":
+            # Cycles extinguishes a sun in a world volume, unless it casts no shadows: then it
+            # lights the haze undimmed (the add-on left it out, 'Sun lamps' off by default).
+            sun = bpy.data.objects.new("Sun", bpy.data.lights.new("Sun", "SUN"))
+            sc.collection.objects.link(sun)
+            sun.rotation_euler = (0.9, 0.0, 0.5)
+            sun.data.energy, sun.data.use_shadow = 0.05, False
         cycles, _ = ref_mod.render_to_array(str(tmp_path / "cycles.exr"))
         blender_addon.register()
         try:

@@ -231,12 +231,16 @@ def _light(
         color = cv.rgb("Color", light.color)
         matrix = light.matrix
         if light.kind == "SUN":
-            if not include_sun:
+            if not include_sun and light.cast_shadow:
                 notes.append(
                     f"{light.name}: sun lamp left out of the volumetrics (Cycles extinguishes a sun behind an "
                     "infinite world volume; enable 'Sun lamps' to light the medium with it)"
                 )
                 return None
+            if not light.cast_shadow:
+                # Cycles traces no shadow ray for it, so the world volume does not extinguish it:
+                # it lights the haze undimmed, as Tyndall's sun in a homogeneous medium does.
+                notes.append(f"{light.name}: Cast Shadow is off, so the sun lights the haze undimmed (as in Cycles)")
             z = [float(matrix[r][2]) for r in range(3)]
             return {
                 "type": "sun",

@@ -228,6 +228,7 @@ fn segment_hits(a: DVec3, b: DVec3, tri: &[DVec3; 3]) -> bool {
     t > 1e-12 && t < 1.0 - 1e-12
 }
 
+#[derive(Clone, Copy)]
 struct BruteScene<'a> {
     spot: RefSpot,
     sigma_s: f64,
@@ -1271,4 +1272,70 @@ fn ray_visibility_and_cast_shadow_through_a_render() {
     assert!(totals[1].1 > totals[0].1 * 1.05 && totals[2].1 > totals[0].1 * 1.05, "{totals:?}");
     // Without the light's shadows the medium does not dim its light either (Cycles).
     assert!(totals[3].1 > totals[1].1 * 1.02, "{totals:?}");
+}
+
+/// A view ray through many casters the camera does not see (slats lit from the side): each
+/// face it crosses ends a piece. A first version split at most 32 faces per piece and was
+/// 0.8 % off behind 50 slats (0.12 % behind 36, 2 % behind 70) with an estimate of 1e-8
+/// (review of this change).
+#[test]
+fn many_hidden_casters_along_one_ray() {
+    use tyndall_core::{Scene, render};
+    // 40 slats 3.8 cm apart: shadows of 1.0–2.5 cm below each, lit gaps of ≥ 1.3 cm, which the
+    // brute force's boundary search (≈ 5 mm steps here) resolves.
+    let n = 40;
+    let mut boxed: Vec<[DVec3; 3]> = Vec::new();
+    for k in 0..n {
+        let z = 0.5 + 1.5 * k as f64 / (n - 1) as f64;
+        let p = |x: f64, y: f64| DVec3::new(x, y, z);
+        boxed.push([p(-0.3, -0.3), p(0.3, -0.3), p(0.3, 0.3)]);
+        boxed.push([p(-0.3, -0.3), p(0.3, 0.3), p(-0.3, 0.3)]);
+    }
+    let positions: Vec<[f64; 3]> = boxed.iter().flat_map(|t| t.iter().map(|v| v.to_array())).collect();
+    let triangles: Vec<[u32; 3]> = (0..boxed.len() as u32).map(|k| [3 * k, 3 * k + 1, 3 * k + 2]).collect();
+    let light = DVec3::new(30.0, 0.0, 3.0);
+    let axis = (DVec3::new(0.0, 0.0, 1.5) - light).normalize();
+    let json = serde_json::json!({
+        "version": 1,
+        "camera": {"type": "perspective", "position": [0.0, 0.0, -1.0], "resolution": [3, 3], "focal_length_mm": 200.0,
+                   "orientation": {"look_at": {"target": [0.0, 0.0, 3.0], "up": [0, 1, 0]}}},
+        "meshes": [{"name": "slats", "positions": positions, "triangles": triangles, "visible_to_camera": false}],
+        "lights": [{"type": "spot", "name": "s", "position": light.to_array(), "power_w": 800.0, "spot_size_deg": 30.0,
+                    "spot_blend": 0.2, "orientation": {"quaternion_wxyz": quat_for_axis(axis)}}],
+        "media": [{"type": "homogeneous", "name": "haze", "scattering": 0.1, "phase": {"type": "isotropic"}}],
+        "output": {"layers": ["inscatter"], "tolerance": 1e-7, "spectral": "never",
+                   "pixel_filter": {"type": "none"}, "interpolate_smooth_pixels": false, "skip_unlit_tiles": false}
+    });
+    let scene = Scene::from_json_str(&json.to_string(), "<t>").unwrap();
+    let (img, _) = render(&scene, None).unwrap();
+    let cam = tyndall_core::geometry::camera::CameraRays::new(&scene.camera);
+    let cos_half = 15f64.to_radians().cos();
+    let brute = BruteScene {
+        spot: RefSpot {
+            pos: light,
+            axis,
+            cos_half,
+            smooth: 0.2 * (1.0 - cos_half),
+            intensity: 800.0 / (4.0 * PI),
+            nishita_q: None,
+        },
+        sigma_s: 0.1,
+        sigma_t: 0.1,
+        phase: Phase::Iso,
+        tris: &boxed,
+        light_path_dims: true,
+    };
+    let unshadowed = BruteScene { tris: &[], ..brute };
+    for y in 0..3 {
+        for x in 0..3 {
+            let dir = cam.direction(x as f64 + 0.5, y as f64 + 0.5);
+            let o = cam.position + dir * cam.start_distance(dir);
+            let want = brute.brute(o, dir, f64::INFINITY);
+            let free = unshadowed.brute(o, dir, f64::INFINITY);
+            let got = f64::from(img.inscatter[y * 3 + x][0]);
+            println!("pixel ({x}, {y}): {got:.7e} against {want:.7e} (unshadowed {free:.4e})");
+            assert!(want < 0.95 * free, "the slats shadow the ray");
+            assert!((got - want).abs() <= 2e-6 * want, "pixel ({x}, {y}): {got:e} against {want:e}");
+        }
+    }
 }

@@ -1370,14 +1370,18 @@ fn render_channels<const C: usize, const K: usize>(
 
     // The meshes the camera sees and those that cast shadows (Blender's Ray
     // Visibility > Camera and > Shadow): one list unless a mesh turns one off.
-    let split = scene.meshes.iter().any(|m| !m.visible_to_camera || !m.casts_shadows);
-    let (camera_meshes, shadow_meshes): (Cow<'_, [Mesh]>, Cow<'_, [Mesh]>) = if split {
-        let pick = |f: fn(&Mesh) -> bool| -> Cow<'_, [Mesh]> { Cow::Owned(scene.meshes.iter().filter(|m| f(m)).cloned().collect()) };
-        (pick(|m| m.visible_to_camera), pick(|m| m.casts_shadows))
-    } else {
-        (Cow::Borrowed(scene.meshes.as_slice()), Cow::Borrowed(scene.meshes.as_slice()))
+    // A list is the scene's own unless a mesh leaves it (then the rest is copied, and the
+    // shadow rays get a BVH of their own: a second build, the cost of differing lists).
+    let split = scene.meshes.iter().any(|m| m.visible_to_camera != m.casts_shadows);
+    let pick = |f: fn(&Mesh) -> bool| -> Cow<'_, [Mesh]> {
+        if scene.meshes.iter().all(f) {
+            Cow::Borrowed(scene.meshes.as_slice())
+        } else {
+            Cow::Owned(scene.meshes.iter().filter(|m| f(m)).cloned().collect())
+        }
     };
-    if split {
+    let (camera_meshes, shadow_meshes) = (pick(|m| m.visible_to_camera), pick(|m| m.casts_shadows));
+    if scene.meshes.iter().any(|m| !m.visible_to_camera || !m.casts_shadows) {
         let see_through = scene.meshes.iter().filter(|m| !m.visible_to_camera && m.casts_shadows).count();
         let no_shadow = scene.meshes.iter().filter(|m| m.visible_to_camera && !m.casts_shadows).count();
         let neither = scene.meshes.iter().filter(|m| !m.visible_to_camera && !m.casts_shadows).count();

@@ -529,17 +529,18 @@ impl<const C: usize> StageLights<C> {
                     if sw.view_rays_cross_casters {
                         // The ray passes through casters the camera does not see: at each
                         // of their faces it crosses, the light's visibility may change
-                        // without a wedge crossing. (At most 64 faces per piece; beyond,
-                        // the rest is one piece, classified by wedges alone.)
-                        for _ in 0..64 {
-                            match bvh.closest_hit(ray.origin, ray.dir, t, b) {
-                                Some(h) if h.t > t && h.t < b => {
-                                    rays += sw.lit_segments(ray.origin, ray.dir, t, h.t, &mut scratch.cuts, &mut scratch.lit, visible);
-                                    t = h.t;
-                                }
-                                Some(h) if h.t <= t => t = t.next_up(),
-                                _ => break,
+                        // without a wedge crossing, so each face ends a piece. (Faces at
+                        // the same distance, a shared edge, end it once.)
+                        let mut from = t;
+                        while let Some(h) = bvh.closest_hit(ray.origin, ray.dir, from, b) {
+                            if h.t >= b {
+                                break;
                             }
+                            if h.t > t {
+                                rays += sw.lit_segments(ray.origin, ray.dir, t, h.t, &mut scratch.cuts, &mut scratch.lit, visible);
+                                t = h.t;
+                            }
+                            from = h.t.next_up();
                         }
                     }
                     rays += sw.lit_segments(ray.origin, ray.dir, t, b, &mut scratch.cuts, &mut scratch.lit, visible);
