@@ -1155,6 +1155,27 @@ fn topology_code_of_a_traced_ray_equals_the_geometric_one() {
     assert!(lights.topology_bits() <= 62);
 }
 
+/// The brute force of an 800 W Cycles spot (blend 0.2, half-angle in degrees) in isotropic
+/// haze of σ_s = 0.1 m⁻¹, shadowed by `tris`.
+fn haze_spot<'a>(pos: DVec3, axis: DVec3, half_deg: f64, tris: &'a [[DVec3; 3]], light_path_dims: bool) -> BruteScene<'a> {
+    let cos_half = half_deg.to_radians().cos();
+    BruteScene {
+        spot: RefSpot {
+            pos,
+            axis,
+            cos_half,
+            smooth: 0.2 * (1.0 - cos_half),
+            intensity: 800.0 / (4.0 * PI),
+            nishita_q: None,
+        },
+        sigma_s: 0.1,
+        sigma_t: 0.1,
+        phase: Phase::Iso,
+        tris,
+        light_path_dims,
+    }
+}
+
 /// Closest hit of the ray `o + t·d`, t > 0, with the triangles (Möller–Trumbore), or ∞.
 fn closest_hit(o: DVec3, d: DVec3, tris: &[[DVec3; 3]]) -> f64 {
     let mut best = f64::INFINITY;
@@ -1222,23 +1243,8 @@ fn ray_visibility_and_cast_shadow_through_a_render() {
             );
         }
         let cam = CameraRays::new(&scene.camera);
-        let cos_half = 30f64.to_radians().cos();
         let shadow_tris: &[[DVec3; 3]] = if light_shadows && mesh_shadows { &boxed } else { &[] };
-        let brute = BruteScene {
-            spot: RefSpot {
-                pos: DVec3::new(0.0, 0.0, 4.0),
-                axis: DVec3::NEG_Z,
-                cos_half,
-                smooth: 0.2 * (1.0 - cos_half),
-                intensity: 800.0 / (4.0 * PI),
-                nishita_q: None,
-            },
-            sigma_s: 0.1,
-            sigma_t: 0.1,
-            phase: Phase::Iso,
-            tris: shadow_tris,
-            light_path_dims: light_shadows,
-        };
+        let brute = haze_spot(DVec3::new(0.0, 0.0, 4.0), DVec3::NEG_Z, 30.0, shadow_tris, light_shadows);
         let (mut total, mut hits, mut worst) = (0.0, 0, 0.0f64);
         for y in 0..h {
             for x in 0..w {
@@ -1309,22 +1315,7 @@ fn many_hidden_casters_along_one_ray() {
     let scene = Scene::from_json_str(&json.to_string(), "<t>").unwrap();
     let (img, _) = render(&scene, None).unwrap();
     let cam = tyndall_core::geometry::camera::CameraRays::new(&scene.camera);
-    let cos_half = 15f64.to_radians().cos();
-    let brute = BruteScene {
-        spot: RefSpot {
-            pos: light,
-            axis,
-            cos_half,
-            smooth: 0.2 * (1.0 - cos_half),
-            intensity: 800.0 / (4.0 * PI),
-            nishita_q: None,
-        },
-        sigma_s: 0.1,
-        sigma_t: 0.1,
-        phase: Phase::Iso,
-        tris: &boxed,
-        light_path_dims: true,
-    };
+    let brute = haze_spot(light, axis, 15.0, &boxed, true);
     let unshadowed = BruteScene { tris: &[], ..brute };
     for y in 0..3 {
         for x in 0..3 {
