@@ -1369,9 +1369,9 @@ fn render_channels<const C: usize, const K: usize>(
     let mut t = report.time("plan", t0);
 
     // The meshes the camera sees and those that cast shadows (Blender's Ray
-    // Visibility > Camera and > Shadow): one list unless a mesh turns one off.
-    // A list is the scene's own unless a mesh leaves it (then the rest is copied, and the
-    // shadow rays get a BVH of their own: a second build, the cost of differing lists).
+    // Visibility > Camera and > Shadow). Each list is the scene's own unless a
+    // mesh leaves it (then the rest is copied); when the two lists differ, the
+    // shadow rays get a BVH of their own (a second build).
     let split = scene.meshes.iter().any(|m| m.visible_to_camera != m.casts_shadows);
     let pick = |f: fn(&Mesh) -> bool| -> Cow<'_, [Mesh]> {
         if scene.meshes.iter().all(f) {
@@ -1396,11 +1396,7 @@ fn render_channels<const C: usize, const K: usize>(
                 "meshes in the lights' shadows",
                 "casts_shadows false: they shadow no light (they still end view rays)",
             ),
-            (
-                neither,
-                "meshes",
-                "visible_to_camera and casts_shadows false: nothing to do with them",
-            ),
+            (neither, "meshes", "visible_to_camera and casts_shadows false: left out entirely"),
         ] {
             if n > 0 {
                 report.plan.left_out(format!("{n} {what}"), why);
@@ -1410,7 +1406,7 @@ fn render_channels<const C: usize, const K: usize>(
     let (tris, owner) = world_triangles(&camera_meshes);
     // The shadow casters' triangles when they are not the camera's.
     let shadow_tris: Option<Vec<Triangle>> = split.then(|| world_triangles(&shadow_meshes).0);
-    report.stats.triangles = tris.len() as u64 + shadow_tris.as_ref().map_or(0, |t| t.len() as u64);
+    report.stats.triangles = scene.meshes.iter().map(|m| m.triangles.len() as u64).sum();
     // What the smoothness test of [`smooth`] needs of the scene: the
     // surfaces' planes and each light's volume and shadow casters. Only when
     // the media and the lights' distributions are smooth.

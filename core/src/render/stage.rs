@@ -11,6 +11,13 @@
 //! ∩ the light's bounding cone ∩ the media ∩ `[0, first surface]` minus the
 //! exact shadows ([`crate::light::shadow`]).
 //!
+//! **Shadows switched off** (`casts_shadows: false`, Blender's Cast Shadow):
+//! no shadows and `T(x→light) = 1`, as Cycles, which traces no shadow ray for
+//! such a lamp and applies the medium's extinction on that ray. Casters the
+//! camera does not see (`visible_to_camera: false`) let view rays through;
+//! every face of theirs a ray crosses then ends a piece, because the light's
+//! visibility can change there without a wedge crossing.
+//!
 //! **Substitution.** With `t_c` the ray parameter closest to the light and
 //! `h` that closest distance, `t = t_c + h·tan u` gives `dt/r² = du/h`:
 //! the 1/r² peak near the light becomes a bounded, smooth integrand on
