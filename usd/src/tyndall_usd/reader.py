@@ -413,20 +413,18 @@ class _Converter:
         return {"file": os.path.abspath(file), "strength": strength}
 
     def casts_shadows(self, prim: Usd.Prim) -> bool:
-        """UsdLux ShadowAPI ``inputs:shadow:enable``, or ``tyndall:castsShadows`` (which the add-on
-        writes, as Blender's exporter writes neither) on the prim or its parent."""
-        for p in (prim, prim.GetParent()):
-            if _authored(p, NS + "castsShadows"):
-                return _bool(p, NS + "castsShadows", self.time, True)
-        return _bool(prim, "inputs:shadow:enable", self.time, True)
+        """``tyndall:castsShadows`` (which the add-on writes, as Blender's exporter writes no
+        shadow switch), else UsdLux ShadowAPI ``inputs:shadow:enable``."""
+        own = self.tyndall_flag(prim, "castsShadows")
+        return own if own is not None else _bool(prim, "inputs:shadow:enable", self.time, True)
 
-    def mesh_flag(self, prim: Usd.Prim, name: str) -> bool:
-        """``tyndall:<name>`` (default true) on the mesh prim or its parent (an object's custom
-        property lands on the Xform Blender writes for it)."""
+    def tyndall_flag(self, prim: Usd.Prim, name: str) -> bool | None:
+        """``tyndall:<name>`` on the prim or, if not there, its parent (an object's custom
+        property lands on the Xform Blender writes for it); ``None`` where neither has it."""
         for p in (prim, prim.GetParent()):
             if _authored(p, NS + name):
                 return _bool(p, NS + name, self.time, True)
-        return True
+        return None
 
     def distant_light(self, prim: Usd.Prim) -> dict[str, Any]:
         path = str(prim.GetPath())
@@ -509,7 +507,7 @@ class _Converter:
         }
         # Ray visibility: no UsdGeom schema holds it; the add-on writes these.
         for attr, key in (("visibleToCamera", "visible_to_camera"), ("castsShadows", "casts_shadows")):
-            if not self.mesh_flag(prim, attr):
+            if self.tyndall_flag(prim, attr) is False:
                 out[key] = False
         return out
 
