@@ -360,6 +360,12 @@ def gather_lights(objects: list[RenderedObject], notes: list[str]) -> list[Light
             if ies is None:
                 ies = _ies_property(obj, light)
         color = tuple(c * n for c, n in zip(color, node_color[:3], strict=True))
+        radius = float(getattr(light, "shadow_soft_size", 0.0))
+        if light.type in ("POINT", "SPOT") and radius > 0.0 and not getattr(light, "use_soft_falloff", True):
+            notes.append(
+                f"{ro.name}: Soft Falloff is off, so Cycles renders a sphere lamp of radius {radius:.4g}; Tyndall "
+                "treats it as a point (rays closer than the radius evaluated at it): the haze can differ"
+            )
         out.append(
             LightData(
                 name=ro.name,
@@ -368,7 +374,7 @@ def gather_lights(objects: list[RenderedObject], notes: list[str]) -> list[Light
                 color=(color[0], color[1], color[2]),
                 energy=float(light.energy) * k,
                 exposure=float(getattr(light, "exposure", 0.0)),
-                radius=float(getattr(light, "shadow_soft_size", 0.0)),
+                radius=radius,
                 spot_size=float(getattr(light, "spot_size", 0.785398)),
                 spot_blend=float(getattr(light, "spot_blend", 0.15)),
                 sun_angle=float(getattr(light, "angle", 0.00918)),

@@ -905,6 +905,8 @@ def test_exported_objects_are_those_cycles_renders(addon: None) -> None:
     excluded_only.collection_objects[0].light_linking.link_state = "EXCLUDE"
     light_in(sc.collection, "Excl").light_linking.receiver_collection = excluded_only
     light_in(sc.collection, "Blocked").light_linking.blocker_collection = receivers
+    sphere = light_in(sc.collection, "Sphere").data
+    sphere.shadow_soft_size, sphere.use_soft_falloff = 0.3, False
     light_in(sc.collection, "EyeHidden").hide_set(True)  # hidden in the viewport, rendered: kept
     light_in(sc.collection, "MonitorOff").hide_viewport = True  # not evaluated for the viewport, rendered
     props = bpy.data.collections.new("Props")  # not linked to the scene: instanced only
@@ -948,11 +950,12 @@ def test_exported_objects_are_those_cycles_renders(addon: None) -> None:
     built = _built()
     lights = {lt["name"]: lt for lt in built.scene["lights"]}
     assert sorted(lights) == [
-        "Blocked", "Excl", "EyeHidden", "MonitorOff", "Rig_PropLight", "Rig_Shared", "Shared", "Spot_001"
+        "Blocked", "Excl", "EyeHidden", "MonitorOff", "Rig_PropLight", "Rig_Shared", "Shared", "Sphere", "Spot_001"
     ]
     # Light groups (keyed by these names) only for lamps that are not instanced: a Cycles light
     # group is the object's, and its instances would share it.
-    assert sorted(built.light_names) == ["Blocked", "Excl", "EyeHidden", "MonitorOff", "Spot.001"]
+    assert sorted(built.light_names) == ["Blocked", "Excl", "EyeHidden", "MonitorOff", "Sphere", "Spot.001"]
+    assert any("Sphere: Soft Falloff is off, so Cycles renders a sphere lamp" in n for n in built.notes)
     assert any("Shared: also instanced, so no light group of its own" in n for n in built.notes)
     assert lights["Rig_PropLight"]["position"] == pytest.approx([2.0, 0.0, 1.0])
     assert sorted(m["name"] for m in built.scene["meshes"]) == [
