@@ -586,9 +586,9 @@ fn prepare_stage_lights<const C: usize>(scene: &Scene, report: &mut Report) -> R
         let label = light_label(i, l);
         match l {
             Light::Point(_) | Light::Spot(_) => {
-                let (power_w, color, ies_ref) = match l {
-                    Light::Point(p) => (p.power_w, p.color, &p.ies),
-                    Light::Spot(p) => (p.power_w, p.color, &p.ies),
+                let (power_w, color, ies_ref, casts_shadows) = match l {
+                    Light::Point(p) => (p.power_w, p.color, &p.ies, p.casts_shadows),
+                    Light::Spot(p) => (p.power_w, p.color, &p.ies, p.casts_shadows),
                     _ => unreachable!("matched above"),
                 };
                 if power_w == 0.0 || color.iter().all(|c| *c == 0.0) || ies_ref.as_ref().is_some_and(|r| r.strength == 0.0) {
@@ -623,11 +623,6 @@ fn prepare_stage_lights<const C: usize>(scene: &Scene, report: &mut Report) -> R
                     }
                 }
                 report.plan.computed(label, describe_point(&src, power_w));
-                let casts_shadows = match l {
-                    Light::Point(p) => p.casts_shadows,
-                    Light::Spot(p) => p.casts_shadows,
-                    _ => true,
-                };
                 out.points.push(stage::PreparedPoint {
                     light: src,
                     shadows: None,
