@@ -118,6 +118,11 @@ pub struct Stats {
     /// nothing integrated (with `pixels_interpolated`'s machinery on).
     #[serde(default)]
     pub pixels_outside_every_volume: u64,
+    /// Of the pixels integrated against the pixel filter (`edge_pixels`),
+    /// those filtered from a spot's angular profile without lattice rays,
+    /// within the tolerance by their own estimate (`render::profile`).
+    #[serde(default)]
+    pub pixels_profile_filtered: u64,
     /// Pixels with a NaN or infinite value in any layer (0 unless there is a bug).
     pub non_finite_pixels: u64,
     /// Triangles in the BVH.

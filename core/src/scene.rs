@@ -965,6 +965,13 @@ pub struct Output {
     /// `render::smooth`). Default true; false traces every pixel.
     #[serde(default = "default_true")]
     pub interpolate_smooth_pixels: bool,
+    /// Filter the pixels across a spot's beam from the beam's angular
+    /// profile instead of a lattice of view rays, where that meets the
+    /// tolerance (see `render::profile`): when all in-scatter comes from
+    /// Blender spot lamps in media without boundaries. Default true; false
+    /// sends every such pixel to the lattice (for checking).
+    #[serde(default = "default_true")]
+    pub profile_filter: bool,
 }
 
 impl Default for Output {
@@ -977,6 +984,7 @@ impl Default for Output {
             pixel_filter: PixelFilter::default(),
             skip_unlit_tiles: true,
             interpolate_smooth_pixels: true,
+            profile_filter: true,
         }
     }
 }

@@ -20,6 +20,7 @@
 //! rows finish.
 
 pub mod filter;
+mod profile;
 pub mod smooth;
 pub mod stage;
 pub mod unlit;
@@ -1798,6 +1799,16 @@ fn render_channels<const C: usize, const K: usize>(
     // Pixels may be interpolated ([`smooth`]) only with unlit tiles on
     // (in-scatter layers only, perspective, stage lights only).
     let smooth_on = want_topology && unlit_grid.is_some();
+    // The filter across beams from their profiles ([`profile`]): when all
+    // in-scatter comes from spot lamps in media without boundaries (the
+    // interpolation's conditions) and a perspective camera's pixels are filtered.
+    let profile_on = scene.output.profile_filter
+        && smooth_scene.is_ok()
+        && filter.radius() > 0.0
+        && lights.suns.is_empty()
+        && lights.ambient.iter().all(|a| *a == 0.0)
+        && stage_lights.windows.is_empty()
+        && stage_lights.points.iter().all(|p| p.light.is_axial() && p.light.cos_reach > 0.0);
     const ST: usize = smooth::STENCIL;
     // Which interpolation pass, if any, pixel (col, row) is left for: the
     // half-spacing `s` of its level (2, the first: the pixels with even x
@@ -1890,7 +1901,7 @@ fn render_channels<const C: usize, const K: usize>(
     // costs) and their topology codes ([`smooth::PRESENT`]: a code to read;
     // the surface comes from `surface`).
     let mut error = vec![[0f32; 3]; if want_error { n } else { h }];
-    let mut own_error = vec![0f32; if smooth_on { n } else { h }];
+    let mut own_error = vec![0f32; if smooth_on || profile_on { n } else { h }];
     let mut codes = vec![0u64; if smooth_on { n } else { h }];
     let (sun_chunk, err_chunk) = (if want_sun_t { w } else { 1 }, if want_error { w } else { 1 });
     let max_of = |e: &[f32; 3]| e[0].max(e[1]).max(e[2]);
@@ -1908,7 +1919,7 @@ fn render_channels<const C: usize, const K: usize>(
         .zip(surface.par_chunks_mut(w))
         .zip(sun_t.par_chunks_mut(sun_chunk))
         .zip(error.par_chunks_mut(err_chunk))
-        .zip(own_error.par_chunks_mut(smooth_chunk))
+        .zip(own_error.par_chunks_mut(if smooth_on || profile_on { w } else { 1 }))
         .zip(codes.par_chunks_mut(smooth_chunk))
         .enumerate()
         .map(|(row, (((((((l_row, t_row), d_row), id_row), s_row), e_row), oe_row), code_row))| {
@@ -1954,8 +1965,10 @@ fn render_channels<const C: usize, const K: usize>(
                 if want_error {
                     e_row[col] = e;
                 }
-                if smooth_on {
+                if smooth_on || profile_on {
                     oe_row[col] = max_of(&e);
+                }
+                if smooth_on {
                     code_row[col] = traced_code(col as f64 + 0.5, row as f64 + 0.5, &s);
                 }
                 st.add(&s);
@@ -2131,7 +2144,6 @@ fn render_channels<const C: usize, const K: usize>(
         }
     }
     drop(codes);
-    drop(own_error);
     t = report.time("render", t);
     if cancelled() {
         // The classification of the next pass alone takes 0.2–0.4 s at 1080p.
@@ -2615,6 +2627,36 @@ fn render_channels<const C: usize, const K: usize>(
             cancel,
             progress: &filter_progress,
         };
+        // Pixels across a spot's beam, from its profile, without lattice rays.
+        let (profiled, edges) = match &smooth_scene {
+            Ok((planes, casters)) if profile_on && !edges.is_empty() => {
+                let beams: Vec<profile::BeamLight> = stage_lights
+                    .points
+                    .iter()
+                    .map(|p| profile::BeamLight::new(&p.light, p.casts_shadows))
+                    .collect();
+                t = report.time("pixel_filter_profile_tables", t);
+                let input = profile::ProfileInput {
+                    cam: &cam,
+                    width: w,
+                    height: h,
+                    filter,
+                    tolerance,
+                    inscatter: &inscatter,
+                    own_error: &own_error,
+                    surface: &surface,
+                    planes,
+                    casters: &casters[..beams.len()],
+                    lights: &beams,
+                    media: &media,
+                    light_images: &light_images,
+                    window_scale: &window_scale,
+                };
+                profile::filter_by_profile(&input, &edges)
+            }
+            _ => (Vec::new(), edges),
+        };
+        t = report.time("pixel_filter_profile", t);
         let (filtered, lattice) = filter::filter_adaptive(&job, &edges, &sample);
         if cancelled() {
             return Err(RenderError::Cancelled);
@@ -2648,6 +2690,32 @@ fn render_channels<const C: usize, const K: usize>(
             if rel > tolerance {
                 edge.not_converged += 1;
             }
+        }
+        for p in &profiled {
+            let i = p.index;
+            inscatter[i] = p.value.map(|v| v as f32);
+            if let Some(img) = light_inscatter.get_mut(p.light) {
+                img[i] = p.value.map(|v| v as f32);
+            }
+            if want_error {
+                error[i] = p.error.map(|v| v as f32);
+            }
+            let m = p.value.iter().fold(0.0f64, |a, v| a.max(v.abs())).max(window_scale(i));
+            let e_max = p.error.iter().fold(0.0f64, |a, v| a.max(*v));
+            edge.max_abs = edge.max_abs.max(e_max);
+            edge.max_rel = edge.max_rel.max(if m > 0.0 { e_max / m } else { 0.0 });
+        }
+        edge.pixels += profiled.len() as u64;
+        edge.profile_pixels = profiled.len() as u64;
+        if profile_on {
+            report.plan.computed(
+                format!("pixel filter from the beams' profiles on {} pixels", profiled.len()),
+                "the window integral of G·A(ψ): A the light's profile integrated across its cone along the great circle at the ray plane's angle ψ from the axis (a table per light, exact geometry per node), G = L/A from the centre samples (as ρ·G₀, G₀ the in-scatter density at the chord's middle in closed form), Catmull–Rom on ¼ px nodes, trapezoid rule; estimate: |Catmull–Rom − bilinear| and ρ's spread where extended, |¼ px − ½ px rule|, the samples' own errors and the table's; no lattice rays",
+            );
+            report.plan.left_out(
+                format!("lattice rays on {} pixels", profiled.len()),
+                "filtered from the beam's profile within the tolerance (render::profile); the rest (surfaces cutting a chord, possible shadows, another light's cone, a light's image, the frame's 3 px border, or an estimate over the tolerance) use the lattice",
+            );
         }
         for (k, &i) in smooth.iter().enumerate() {
             inscatter[i] = smooth_inscatter[k];
@@ -2684,6 +2752,7 @@ fn render_channels<const C: usize, const K: usize>(
     report.stats.rays_without_medium = stats.vacuum;
     report.stats.pixels_unlit = stats.unlit;
     report.stats.pixels_interpolated = stats.interpolated;
+    report.stats.pixels_profile_filtered = edge.profile_pixels;
     report.stats.pixels_outside_every_volume = stats.outside;
     if stats.outside > 0 {
         report.plan.left_out(
@@ -3010,6 +3079,8 @@ impl<const K: usize> Default for Sample<K> {
 #[derive(Debug, Default)]
 struct EdgeStats {
     pixels: u64,
+    /// Of `pixels`, those filtered from the beam's profile ([`profile`]).
+    profile_pixels: u64,
     samples: u64,
     max_abs: f64,
     max_rel: f64,

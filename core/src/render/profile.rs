@@ -1,0 +1,764 @@
+//! The pixel filter across a spot's beam from its angular profile, without
+//! lattice rays.
+//!
+//! **Why.** Where a beam is a few pixels wide, every pixel near it needs the
+//! filter integral, and the adaptive lattice of [`super::filter`] spends
+//! ≈ 14 view rays per such pixel refining across the beam's edges
+//! (docs/benchmarks.md, eighteenth session). Those edges come from the
+//! light's angular profile alone, which is known in closed form.
+//!
+//! **The model** (exact, not a thin-cone approximation). Let the view ray
+//! run from `o` along the unit `d`, and `L` be the light. The ray and the
+//! light span a plane with unit normal `m̂ ∝ (o − L) × d`; the light's axis
+//! `a` makes the angle `ψ`, `sin ψ = |m̂·a|`, with it. Seen from the light,
+//! the ray's points sweep that plane by the angle `u` of Nishita's
+//! substitution (`t = t_c + h tan u`, `dt/r² = du/h`, `h` the ray's distance
+//! from the light), and a direction at in-plane angle `v` from the axis's
+//! projection `p̂` makes `cos θ = cos ψ · cos v` with the axis (a right
+//! spherical triangle). So the in-scatter of an axisymmetric light
+//! `I(θ)` is (stage.rs, Nishita et al. 1987 eqs 1–3)
+//!
+//! `L = (1/h) ∫ I(θ(u)) S(u) du`, `S = Σ σ_s p(μ) · T(eye→x) · T(x→light)`,
+//!
+//! and when the ray crosses the whole cone (it starts and ends outside it,
+//! with `p̂` between the directions of its ends), `L = G · A(ψ)` with
+//!
+//! `A(ψ) = ∫ I(arccos(cos ψ cos v)) dv` — the light's profile integrated
+//! across the cone along a great circle at distance `ψ` from the axis (a
+//! spherical Abel transform, one table per light), and `G` the
+//! `I`-weighted mean of `S/h` along the chord. `A` holds the beam's edges;
+//! `G` is smooth wherever the chord is whole, unshadowed and inside media
+//! without boundaries: the chord is symmetric in `v`, so `G` depends on the
+//! chord's half-width only through even powers, with no square-root edge.
+//!
+//! **The filter.** The centre samples give `G = L/A(ψ)` where the centre
+//! lies well inside the cone. To interpolate across pixels whose centres
+//! miss the beam, `G` is written as `ρ·G₀` with `G₀ = S(x₀)/h` at the
+//! ray's point `x₀` in the direction `p̂` (closed form from the media, at
+//! every centre inside the cone or not) and `ρ` (≈ 1, per colour channel)
+//! taken from the samples and extended outwards from its known values.
+//! Both are interpolated to a ¼ px grid of nodes (Catmull–Rom, and
+//! bilinear for the estimate), multiplied by the exact `A(ψ)` of each node's
+//! ray — no ray is traced at a node, `ψ` is geometry — and integrated
+//! against Blender's window by the trapezoid rule on the node grid (the
+//! window is 0 with its derivatives at its ends).
+//!
+//! **Error estimate** of a pixel, per channel: the window integral of the
+//! nodes' `|Catmull–Rom − bilinear|` (no cancellation between nodes) and of
+//! the extended `ρ`'s spread wherever it is used, plus the difference
+//! between the ¼ px and ½ px trapezoid sums, plus the samples' own errors
+//! and the profile table's error, each relative to the value. A pixel is
+//! served here only when that meets the tolerance, and otherwise goes to
+//! the lattice, as does every pixel whose 7 × 7 stencil of centres is not
+//! all on one plane (or none), whose nodes' or centres' chords are cut by a
+//! surface, the camera's start or the frame, may be shadowed, or touch
+//! another light's cone, or which lies within 3.5 px of a light's image.
+//!
+//! Only for scenes whose in-scatter all comes from Blender spot lamps
+//! (smooth between their kinks, no IES, cones narrower than a hemisphere)
+//! in media without boundaries, with no suns, ambient light or windows
+//! (the conditions of [`super::smooth`], which supplies the planes and
+//! casters).
+
+use super::filter::PixelFilter;
+use super::smooth::{Casters, Planes};
+use crate::geometry::camera::CameraRays;
+use crate::light::PointSource;
+use crate::medium::PreparedMedium;
+use crate::numeric::integrate_adaptive;
+use glam::DVec3;
+use rayon::prelude::*;
+
+/// Nodes per pixel along each axis. (8 per px cost twice the time for
+/// 0.80 % instead of 0.87 % relative RMSE on the narrow beam at tolerance 0.3.)
+const NODES_PER_PX: usize = 4;
+/// Half the stencil of centres a pixel's nodes read (Catmull–Rom from
+/// ±1.5 px of the centre reaches 3 px away).
+const STENCIL: usize = 3;
+/// A centre's `ρ` is read from its sample where `A(ψ)` is at least this
+/// fraction of the light's `A(0)` (nearer the edge `L` and `A` are both
+/// small, and `ρ` would carry their relative errors).
+const KNOWN_FRACTION: f64 = 0.05;
+/// The narrowest beam served, in node spacings across its full width, at
+/// the steepest `sin ψ` of the pixel's stencil.
+const MIN_BEAM_NODES: f64 = 8.0;
+/// Pixels within this many px of a light's image are left to the lattice
+/// (`G ∝ 1/h` is not smooth at the light).
+const LIGHT_IMAGE_MARGIN: f64 = 3.5;
+/// Tiles of candidate pixels share their nodes, px a side.
+const TILE: usize = 16;
+/// Profile table cells (uniform in `q = √(1 − sin ψ / sin ψ_max)`, dense at the edge).
+const TABLE_CELLS: usize = 512;
+
+/// `A(ψ)` of one light, tabulated in `q = √(1 − s/s_max)`, `s = sin ψ`: a
+/// hard cone edge makes `A` a square root of the distance to the edge,
+/// linear in `q`.
+#[derive(Debug, Clone)]
+pub(crate) struct ProfileTable {
+    s_max: f64,
+    values: Vec<f64>,
+    /// Largest difference between the table's interpolant and `A` at its
+    /// cells' midpoints, absolute.
+    pub error: f64,
+    /// `A(0)`.
+    pub peak: f64,
+}
+
+impl ProfileTable {
+    /// The table of an axial light ([`PointSource::is_axial`], `cos_reach > 0`).
+    pub(crate) fn new<const C: usize>(light: &PointSource<C>) -> ProfileTable {
+        let cos_reach = light.cos_reach;
+        let s_max = (1.0 - cos_reach * cos_reach).max(0.0).sqrt();
+        let kinks: Vec<f64> = light.kinks().as_slice().to_vec();
+        let abel = |s: f64| -> f64 {
+            let cos_psi = (1.0 - s * s).max(0.0).sqrt();
+            if cos_psi <= cos_reach {
+                return 0.0;
+            }
+            // v runs over [0, c]: the chord's half in the great circle.
+            let c = (cos_reach / cos_psi).clamp(-1.0, 1.0).acos();
+            let mut cuts: Vec<f64> = kinks
+                .iter()
+                .filter(|k| **k < cos_psi)
+                .map(|k| (k / cos_psi).clamp(-1.0, 1.0).acos())
+                .filter(|v| *v > 0.0 && *v < c)
+                .collect();
+            cuts.push(0.0);
+            cuts.push(c);
+            cuts.sort_by(f64::total_cmp);
+            let mut total = 0.0;
+            for pair in cuts.windows(2) {
+                let r = integrate_adaptive(|v| [light.factor_cos(cos_psi * v.cos())], pair[0], pair[1], 1e-15, 1e-12, 200);
+                total += r.value[0];
+            }
+            2.0 * total
+        };
+        let s_of = |q: f64| s_max * (1.0 - q * q);
+        let values: Vec<f64> = (0..=TABLE_CELLS).map(|i| abel(s_of(i as f64 / TABLE_CELLS as f64))).collect();
+        let error = (0..TABLE_CELLS)
+            .map(|i| {
+                let mid = abel(s_of((i as f64 + 0.5) / TABLE_CELLS as f64));
+                (mid - 0.5 * (values[i] + values[i + 1])).abs()
+            })
+            .fold(0.0f64, f64::max);
+        ProfileTable {
+            s_max,
+            peak: values[TABLE_CELLS],
+            values,
+            error,
+        }
+    }
+
+    /// `A` at `s = sin ψ` (0 at and beyond the cone's edge).
+    #[inline]
+    pub(crate) fn eval(&self, s: f64) -> f64 {
+        if s.is_nan() || s >= self.s_max {
+            return 0.0;
+        }
+        let q = (1.0 - s / self.s_max).max(0.0).sqrt() * TABLE_CELLS as f64;
+        let i = (q as usize).min(TABLE_CELLS - 1);
+        let f = q - i as f64;
+        self.values[i] * (1.0 - f) + self.values[i + 1] * f
+    }
+}
+
+/// One light as the model sees it.
+pub(crate) struct BeamLight {
+    position: DVec3,
+    axis: DVec3,
+    cos_reach: f64,
+    sin_reach: f64,
+    /// Whether the medium dims the light path (`casts_shadows`).
+    light_path_extinction: bool,
+    table: ProfileTable,
+}
+
+impl BeamLight {
+    pub(crate) fn new<const C: usize>(light: &PointSource<C>, casts_shadows: bool) -> BeamLight {
+        BeamLight {
+            position: light.position,
+            axis: light.frame.axis,
+            cos_reach: light.cos_reach,
+            sin_reach: (1.0 - light.cos_reach * light.cos_reach).max(0.0).sqrt(),
+            light_path_extinction: casts_shadows,
+            table: ProfileTable::new(light),
+        }
+    }
+
+    /// `(±sin ψ, h, m)` of the ray from `o` along unit `d`: `m = (o − L) × d`,
+    /// `h = |m|`; the sign tells the axis's sides apart.
+    #[inline]
+    fn plane_of(&self, o: DVec3, d: DVec3) -> (f64, f64, DVec3) {
+        let m = (o - self.position).cross(d);
+        let h = m.length();
+        (m.dot(self.axis) / h, h, m)
+    }
+}
+
+/// What the model reads of the render.
+pub(crate) struct ProfileInput<'a, const C: usize> {
+    pub cam: &'a CameraRays,
+    pub width: usize,
+    pub height: usize,
+    pub filter: PixelFilter,
+    pub tolerance: f64,
+    /// Centre samples' in-scatter, RGB.
+    pub inscatter: &'a [[f32; 3]],
+    /// Centre samples' own error estimates (largest channel).
+    pub own_error: &'a [f32],
+    /// Centre samples' surfaces (triangle + 1, 0 for none).
+    pub surface: &'a [u32],
+    pub planes: &'a Planes,
+    /// Per stage point light, its casters.
+    pub casters: &'a [Casters],
+    pub lights: &'a [BeamLight],
+    pub media: &'a [PreparedMedium<C>],
+    pub light_images: &'a [(f64, f64)],
+    pub window_scale: &'a (dyn Fn(usize) -> f64 + Sync),
+}
+
+/// A pixel the model served.
+pub(crate) struct ProfilePixel {
+    pub index: usize,
+    /// The light whose beam it is.
+    pub light: usize,
+    pub value: [f64; 3],
+    pub error: [f64; 3],
+}
+
+/// A centre sample's model data for one light.
+#[derive(Clone, Copy, Default)]
+struct Centre {
+    /// Usable: its chord is whole and unshadowed, no other cone is touched, `G₀` finite.
+    valid: bool,
+    /// Plane group + 1 of its surface (0: none).
+    group: u32,
+    g0: f64,
+    /// `ρ` known (from the sample) or extended.
+    has_rho: bool,
+    /// `ρ` read from the sample.
+    known: bool,
+    rho: [f64; 3],
+    /// Uncertainty of an extended `ρ` (0 where known).
+    spread: [f64; 3],
+    /// The sample's own error relative to its value (known `ρ` only).
+    own_rel: f64,
+    /// `±sin ψ` of its ray.
+    sin_psi: f64,
+}
+
+/// Catmull–Rom weights at fraction `t` for the samples at −1, 0, 1, 2.
+fn catmull_rom(t: f64) -> [f64; 4] {
+    let (t2, t3) = (t * t, t * t * t);
+    [
+        -0.5 * t3 + t2 - 0.5 * t,
+        1.5 * t3 - 2.5 * t2 + 1.0,
+        -1.5 * t3 + 2.0 * t2 + 0.5 * t,
+        0.5 * t3 - 0.5 * t2,
+    ]
+}
+
+/// Serves what it can of `candidates` (flagged pixels); returns the served
+/// pixels and the rest, for the lattice.
+pub(crate) fn filter_by_profile<const C: usize>(input: &ProfileInput<'_, C>, candidates: &[usize]) -> (Vec<ProfilePixel>, Vec<usize>) {
+    let (w, h) = (input.width, input.height);
+    let r = input.filter.radius();
+    // The window's reach must stay inside the stencil (±1.5 px for Blender's).
+    if r <= 0.0 || r > 1.5 || input.lights.is_empty() {
+        return (Vec::new(), candidates.to_vec());
+    }
+    let near_image = |x: usize, y: usize| {
+        let (cx, cy) = (x as f64 + 0.5, y as f64 + 0.5);
+        input
+            .light_images
+            .iter()
+            .any(|&(ix, iy)| (ix - cx).abs() <= LIGHT_IMAGE_MARGIN && (iy - cy).abs() <= LIGHT_IMAGE_MARGIN)
+    };
+    let (mut eligible, mut rest): (Vec<usize>, Vec<usize>) = candidates.iter().partition(|&&i| {
+        let (x, y) = (i % w, i / w);
+        x >= STENCIL && y >= STENCIL && x + STENCIL < w && y + STENCIL < h && !near_image(x, y)
+    });
+    // Tiles of eligible pixels.
+    eligible.sort_unstable_by_key(|&i| ((i / w) / TILE, (i % w) / TILE, i));
+    let mut tiles: Vec<&[usize]> = Vec::new();
+    let mut start = 0;
+    for k in 1..=eligible.len() {
+        let key = |i: usize| ((i / w) / TILE, (i % w) / TILE);
+        if k == eligible.len() || key(eligible[k]) != key(eligible[start]) {
+            tiles.push(&eligible[start..k]);
+            start = k;
+        }
+    }
+    let results: Vec<(Vec<ProfilePixel>, Vec<usize>)> = tiles.par_iter().map(|tile| serve_tile(input, tile)).collect();
+    let mut served = Vec::new();
+    for (s, left) in results {
+        served.extend(s);
+        rest.extend(left);
+    }
+    rest.sort_unstable();
+    (served, rest)
+}
+
+/// The window's node weights, `w(j/8)` for `j = −J..=J` (the trapezoid rule).
+fn window_nodes(filter: &PixelFilter) -> Vec<f64> {
+    let j_max = (filter.radius() * NODES_PER_PX as f64).floor() as i64;
+    (-j_max..=j_max).map(|j| filter.weight(j as f64 / NODES_PER_PX as f64)).collect()
+}
+
+fn serve_tile<const C: usize>(input: &ProfileInput<'_, C>, pixels: &[usize]) -> (Vec<ProfilePixel>, Vec<usize>) {
+    let w = input.width;
+    let (x0, y0) = (
+        pixels.iter().map(|i| i % w).min().unwrap_or(0),
+        pixels.iter().map(|i| i / w).min().unwrap_or(0),
+    );
+    let (x1, y1) = (
+        pixels.iter().map(|i| i % w).max().unwrap_or(0) + 1,
+        pixels.iter().map(|i| i / w).max().unwrap_or(0) + 1,
+    );
+    let mut left: Vec<usize> = pixels.to_vec();
+    let mut served = Vec::new();
+    let weights = window_nodes(&input.filter);
+    for (k, light) in input.lights.iter().enumerate() {
+        if left.is_empty() {
+            break;
+        }
+        let region = Region {
+            cx0: x0 - STENCIL,
+            cy0: y0 - STENCIL,
+            cw: x1 - x0 + 2 * STENCIL,
+            ch: y1 - y0 + 2 * STENCIL,
+        };
+        let centres = centre_grid(input, k, light, &region);
+        let nx = (x1 - x0) * NODES_PER_PX + weights.len();
+        let ny = (y1 - y0) * NODES_PER_PX + weights.len();
+        let mut nodes = Nodes {
+            x0,
+            y0,
+            nx,
+            state: vec![0; nx * ny],
+            values: vec![
+                NodeValue {
+                    value: [0.0; 3],
+                    error: [0.0; 3],
+                    g_max: 0.0
+                };
+                nx * ny
+            ],
+        };
+        let mut still = Vec::new();
+        for &i in &left {
+            match serve_pixel(input, k, light, &region, &centres, &mut nodes, &weights, i) {
+                Some(p) => served.push(p),
+                None => still.push(i),
+            }
+        }
+        left = still;
+    }
+    (served, left)
+}
+
+/// The tile's centres with the stencil's margin, frame coordinates.
+struct Region {
+    cx0: usize,
+    cy0: usize,
+    cw: usize,
+    ch: usize,
+}
+
+/// Where the ray from the eye through image point `(px, py)` ends: the plane
+/// `group` (+1) of the surface seen, or none. Returns `(o, d, t_end from the eye)`.
+fn ray_of<const C: usize>(input: &ProfileInput<'_, C>, px: f64, py: f64, group: u32) -> (DVec3, DVec3, f64) {
+    let cam = input.cam;
+    let d = cam.direction(px, py);
+    let start = cam.start_distance(d);
+    let o = cam.position + d * start;
+    let t_end = if group > 0 {
+        let (n, offset) = input.planes.plane(group);
+        let dn = n.dot(d);
+        let t = (offset - n.dot(cam.position)) / dn;
+        if t.is_finite() && t > start {
+            t.min(cam.clip_end)
+        } else {
+            f64::NAN
+        }
+    } else {
+        cam.clip_end
+    };
+    (o, d, t_end)
+}
+
+/// Whether the ray's chord through light `k`'s cone lies whole inside the
+/// ray, unshadowed, and the ray misses every other light's cone. Returns the
+/// light's `(±sin ψ, h, m)` when so.
+fn chord_ok<const C: usize>(input: &ProfileInput<'_, C>, k: usize, o: DVec3, d: DVec3, t_end: f64) -> Option<(f64, f64, DVec3)> {
+    let cam = input.cam;
+    if t_end.is_nan() {
+        return None;
+    }
+    for (j, other) in input.lights.iter().enumerate() {
+        if j != k {
+            let (s, hj, _) = other.plane_of(o, d);
+            if !(hj > 0.0 && s.abs() > other.sin_reach * (1.0 + 1e-9) + 1e-12) {
+                return None;
+            }
+        }
+    }
+    let light = &input.lights[k];
+    let (s, hk, m) = light.plane_of(o, d);
+    if !(hk > 0.0 && hk.is_finite()) {
+        return None;
+    }
+    if s.abs() >= light.sin_reach {
+        // The ray's plane misses the cone: no chord at all.
+        return Some((s, hk, m));
+    }
+    if input.casters[k].may_shadow(cam.position, d, t_end) {
+        return None;
+    }
+    let outside = |v: DVec3| v.dot(light.axis) < light.cos_reach * v.length() * (1.0 - 1e-9);
+    let v_start = o - light.position;
+    let v_end = if t_end.is_finite() {
+        cam.position + d * t_end - light.position
+    } else {
+        d
+    };
+    if !outside(v_start) || !outside(v_end) {
+        return None;
+    }
+    // p̂, the axis projected into the plane, between the ends' directions.
+    let mh = m / hk;
+    let p = light.axis - mh * light.axis.dot(mh);
+    if v_start.cross(p).dot(m) < 0.0 || p.cross(v_end).dot(m) < 0.0 {
+        return None;
+    }
+    Some((s, hk, m))
+}
+
+fn centre_grid<const C: usize>(input: &ProfileInput<'_, C>, k: usize, light: &BeamLight, region: &Region) -> Vec<Centre> {
+    let w = input.width;
+    let mut grid = vec![Centre::default(); region.cw * region.ch];
+    for cy in 0..region.ch {
+        for cx in 0..region.cw {
+            let (x, y) = (region.cx0 + cx, region.cy0 + cy);
+            let i = y * w + x;
+            let s = input.surface[i];
+            let group = if s == 0 { 0 } else { input.planes.group_of(s - 1) };
+            if s != 0 && group == 0 {
+                continue;
+            }
+            let (o, d, t_end) = ray_of(input, x as f64 + 0.5, y as f64 + 0.5, group);
+            let Some((sin_psi, hk, m)) = chord_ok(input, k, o, d, t_end) else {
+                continue;
+            };
+            // G₀ = S(x₀)/h at the ray's point in the direction p̂.
+            let mh = m / hk;
+            let p = (light.axis - mh * light.axis.dot(mh)).normalize_or_zero();
+            let w_vec = o - light.position;
+            let t_c = -w_vec.dot(d);
+            let n_hat = (w_vec + d * t_c) / hk;
+            let (cos_u, sin_u) = (p.dot(n_hat), p.dot(d));
+            if cos_u.is_nan() || cos_u <= 1e-6 {
+                continue;
+            }
+            let t0 = t_c + hk * sin_u / cos_u;
+            let x0 = o + d * t0;
+            let mu = -sin_u;
+            let mut sp = [0.0f64; C];
+            let mut tau = [0.0f64; C];
+            for med in input.media {
+                let a = med.scattering_phase_at(x0, mu);
+                let b = med.optical_depth_between(o, x0);
+                let c = if light.light_path_extinction {
+                    med.optical_depth_between(x0, light.position)
+                } else {
+                    [0.0; C]
+                };
+                for ch in 0..C {
+                    sp[ch] += a[ch];
+                    tau[ch] += b[ch] + c[ch];
+                }
+            }
+            let g0 = (0..C).map(|ch| sp[ch] * (-tau[ch]).exp()).sum::<f64>() / (C as f64 * hk);
+            if !(g0 > 0.0 && g0.is_finite()) {
+                continue;
+            }
+            let mut c = Centre {
+                valid: true,
+                group,
+                g0,
+                sin_psi,
+                ..Centre::default()
+            };
+            let a = light.table.eval(sin_psi.abs());
+            if a >= KNOWN_FRACTION * light.table.peak {
+                let l = input.inscatter[i].map(f64::from);
+                let largest = l.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+                (c.has_rho, c.known) = (true, true);
+                c.rho = l.map(|v| v / (a * g0));
+                c.own_rel = if largest > 0.0 {
+                    f64::from(input.own_error[i]) / largest
+                } else {
+                    0.0
+                };
+            }
+            grid[cy * region.cw + cx] = c;
+        }
+    }
+    // ρ extended outwards: an unknown valid centre takes the mean of its
+    // known 4-neighbours, with the spread of their values (plus their own
+    // spreads) as its uncertainty, in rounds across the stencil.
+    for _ in 0..2 * STENCIL {
+        let prev = grid.clone();
+        for cy in 0..region.ch {
+            for cx in 0..region.cw {
+                let me = prev[cy * region.cw + cx];
+                if !me.valid || me.has_rho {
+                    continue;
+                }
+                let mut nb: Vec<&Centre> = Vec::with_capacity(4);
+                if cx > 0 {
+                    nb.push(&prev[cy * region.cw + cx - 1]);
+                }
+                if cx + 1 < region.cw {
+                    nb.push(&prev[cy * region.cw + cx + 1]);
+                }
+                if cy > 0 {
+                    nb.push(&prev[(cy - 1) * region.cw + cx]);
+                }
+                if cy + 1 < region.ch {
+                    nb.push(&prev[(cy + 1) * region.cw + cx]);
+                }
+                nb.retain(|c| c.valid && c.has_rho);
+                if nb.is_empty() {
+                    continue;
+                }
+                let out = &mut grid[cy * region.cw + cx];
+                out.has_rho = true;
+                for ch in 0..3 {
+                    let (lo, hi) = nb
+                        .iter()
+                        .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), c| (a.min(c.rho[ch]), b.max(c.rho[ch])));
+                    out.rho[ch] = nb.iter().map(|c| c.rho[ch]).sum::<f64>() / nb.len() as f64;
+                    out.spread[ch] = (hi - lo) + nb.iter().fold(0.0f64, |m, c| m.max(c.spread[ch]));
+                }
+            }
+        }
+    }
+    grid
+}
+
+/// A node's share of the window sums: its value `A·G` (Catmull–Rom), its
+/// error terms (`|Catmull–Rom − bilinear|` and the extended ρ's spread),
+/// and `G`'s largest channel; `None` when the model does not hold there.
+#[derive(Clone, Copy)]
+struct NodeValue {
+    value: [f64; 3],
+    error: [f64; 3],
+    g_max: f64,
+}
+
+/// The tile's nodes, computed once each and shared by the windows holding them.
+struct Nodes {
+    /// Node (0, 0) is at image point `(x0 + ½ − J/P, y0 + ½ − J/P)`.
+    x0: usize,
+    y0: usize,
+    nx: usize,
+    /// 0: not computed, 1: the model fails there, 2: `values` holds it.
+    state: Vec<u8>,
+    values: Vec<NodeValue>,
+}
+
+fn node_value<const C: usize>(
+    input: &ProfileInput<'_, C>,
+    k: usize,
+    light: &BeamLight,
+    region: &Region,
+    centres: &[Centre],
+    px: f64,
+    py: f64,
+) -> Option<NodeValue> {
+    let at = |cx: usize, cy: usize| &centres[(cy - region.cy0) * region.cw + (cx - region.cx0)];
+    let (gx, gy) = (px - 0.5, py - 0.5);
+    let (fx, fy) = (gx.floor(), gy.floor());
+    let (tx, ty) = (gx - fx, gy - fy);
+    let (ix, iy) = (fx as usize, fy as usize);
+    // The node's ray ends on the surface of one of the four centres around
+    // it: its chord must be whole for each of them.
+    let mut sin_psi = f64::NAN;
+    let mut groups = [u32::MAX; 4];
+    for (n, (ca, cb)) in [(0, 0), (1, 0), (0, 1), (1, 1)].into_iter().enumerate() {
+        let g = at(ix + ca, iy + cb).group;
+        if groups[..n].contains(&g) {
+            continue;
+        }
+        groups[n] = g;
+        let (o, d, t_end) = ray_of(input, px, py, g);
+        let (s, _, _) = chord_ok(input, k, o, d, t_end)?;
+        sin_psi = s.abs();
+    }
+    let a = light.table.eval(sin_psi);
+    if a == 0.0 {
+        return Some(NodeValue {
+            value: [0.0; 3],
+            error: [0.0; 3],
+            g_max: 0.0,
+        });
+    }
+    // G = G₀·ρ interpolated (Catmull–Rom, and bilinear for the estimate),
+    // and the extended ρ's uncertainty weighted by its Catmull–Rom weights.
+    let (crx, cry) = (catmull_rom(tx), catmull_rom(ty));
+    let (mut g0_cr, mut g0_lin) = (0.0f64, 0.0f64);
+    let (mut rho_cr, mut rho_lin, mut spread) = ([0.0f64; 3], [0.0f64; 3], [0.0f64; 3]);
+    for (b, wyb) in cry.iter().enumerate() {
+        for (a_, wxa) in crx.iter().enumerate() {
+            let c = at(ix + a_ - 1, iy + b - 1);
+            if !c.has_rho {
+                return None;
+            }
+            let cw = wxa * wyb;
+            g0_cr += cw * c.g0;
+            for ch in 0..3 {
+                rho_cr[ch] += cw * c.rho[ch];
+                spread[ch] += cw.abs() * c.spread[ch];
+            }
+        }
+    }
+    for (b, wyb) in [1.0 - ty, ty].iter().enumerate() {
+        for (a_, wxa) in [1.0 - tx, tx].iter().enumerate() {
+            let c = at(ix + a_, iy + b);
+            let cw = wxa * wyb;
+            g0_lin += cw * c.g0;
+            for ch in 0..3 {
+                rho_lin[ch] += cw * c.rho[ch];
+            }
+        }
+    }
+    let mut out = NodeValue {
+        value: [0.0; 3],
+        error: [0.0; 3],
+        g_max: g0_cr.abs() * rho_cr.iter().fold(0.0f64, |m, v| m.max(v.abs())),
+    };
+    for ch in 0..3 {
+        out.value[ch] = a * g0_cr * rho_cr[ch];
+        out.error[ch] = (out.value[ch] - a * g0_lin * rho_lin[ch]).abs() + a * g0_cr.abs() * spread[ch];
+    }
+    Some(out)
+}
+
+#[allow(clippy::too_many_arguments)]
+fn serve_pixel<const C: usize>(
+    input: &ProfileInput<'_, C>,
+    k: usize,
+    light: &BeamLight,
+    region: &Region,
+    centres: &[Centre],
+    nodes: &mut Nodes,
+    weights: &[f64],
+    i: usize,
+) -> Option<ProfilePixel> {
+    let w = input.width;
+    let (x, y) = (i % w, i / w);
+    let at = |cx: usize, cy: usize| &centres[(cy - region.cy0) * region.cw + (cx - region.cx0)];
+    // The stencil: every centre valid (its chord whole, given its own
+    // surface), some with a known ρ; the ρ a node needs is checked there.
+    let mut known = false;
+    let mut own_rel = 0.0f64;
+    for cy in y - STENCIL..=y + STENCIL {
+        for cx in x - STENCIL..=x + STENCIL {
+            let c = at(cx, cy);
+            if !c.valid {
+                return None;
+            }
+            if c.known {
+                known = true;
+                own_rel = own_rel.max(c.own_rel);
+            }
+        }
+    }
+    if !known {
+        return None;
+    }
+    // The beam must be resolved by the nodes: across the stencil it spans
+    // at least `MIN_BEAM_NODES` node spacings (a thinner beam can pass
+    // between nodes, where both rules of the estimate miss it).
+    let mut slope = 0.0f64;
+    for cy in y - STENCIL + 1..y + STENCIL {
+        for cx in x - STENCIL + 1..x + STENCIL {
+            let (c, l, u) = (at(cx, cy).sin_psi, at(cx - 1, cy).sin_psi, at(cx, cy - 1).sin_psi);
+            slope = slope.max((c - l).abs()).max((c - u).abs());
+        }
+    }
+    if 2.0 * light.sin_reach < MIN_BEAM_NODES / NODES_PER_PX as f64 * slope {
+        return None;
+    }
+    let j_max = weights.len() / 2;
+    let per_px = NODES_PER_PX as f64;
+    let (mut fine, mut coarse, mut est) = ([0.0f64; 3], [0.0f64; 3], [0.0f64; 3]);
+    let (mut w_fine, mut w_coarse) = (0.0f64, 0.0f64);
+    let mut g_max = 0.0f64;
+    for (jy, wy) in weights.iter().enumerate() {
+        if *wy == 0.0 {
+            continue;
+        }
+        let ny = (y - nodes.y0) * NODES_PER_PX + jy;
+        for (jx, wx) in weights.iter().enumerate() {
+            if *wx == 0.0 {
+                continue;
+            }
+            let nx = (x - nodes.x0) * NODES_PER_PX + jx;
+            let slot = ny * nodes.nx + nx;
+            if nodes.state[slot] == 0 {
+                let px = x as f64 + 0.5 + (jx as f64 - j_max as f64) / per_px;
+                let py = y as f64 + 0.5 + (jy as f64 - j_max as f64) / per_px;
+                match node_value(input, k, light, region, centres, px, py) {
+                    Some(v) => {
+                        nodes.values[slot] = v;
+                        nodes.state[slot] = 2;
+                    }
+                    None => nodes.state[slot] = 1,
+                }
+            }
+            if nodes.state[slot] == 1 {
+                return None;
+            }
+            let node = &nodes.values[slot];
+            let wt = wx * wy;
+            // The coarse rule: every other node, centred on the pixel.
+            let coarse_node = (jx + j_max).is_multiple_of(2) && (jy + j_max).is_multiple_of(2);
+            w_fine += wt;
+            if coarse_node {
+                w_coarse += wt;
+            }
+            g_max = g_max.max(node.g_max);
+            for ch in 0..3 {
+                fine[ch] += wt * node.value[ch];
+                if coarse_node {
+                    coarse[ch] += wt * node.value[ch];
+                }
+                est[ch] += wt * node.error[ch];
+            }
+        }
+    }
+    if !(w_fine > 0.0 && w_coarse > 0.0) {
+        return None;
+    }
+    let table_rel = light.table.error / (KNOWN_FRACTION * light.table.peak);
+    let mut value = [0.0f64; 3];
+    let mut error = [0.0f64; 3];
+    for ch in 0..3 {
+        value[ch] = fine[ch] / w_fine;
+        let quadrature = (value[ch] - coarse[ch] / w_coarse).abs();
+        error[ch] = est[ch] / w_fine + quadrature + (own_rel + table_rel) * value[ch].abs() + g_max * light.table.error;
+    }
+    if !value.iter().chain(error.iter()).all(|v| v.is_finite()) {
+        return None;
+    }
+    let scale = value.iter().fold(0.0f64, |m, v| m.max(v.abs())).max((input.window_scale)(i));
+    let e_max = error.iter().fold(0.0f64, |m, v| m.max(*v));
+    (e_max <= input.tolerance * scale).then_some(ProfilePixel {
+        index: i,
+        light: k,
+        value,
+        error,
+    })
+}
