@@ -2602,6 +2602,41 @@ fn render_channels<const C: usize, const K: usize>(
             lap_abs = lap_abs.max(band.lap_abs);
             lap_rel = lap_rel.max(band.lap_rel);
         }
+        // A beam narrower than the centre samples' spacing can pass between
+        // them (a 0.5° spot, any spot near its apex): its pixels' samples are
+        // flat, often all 0, and nothing above flags them. Where the profile
+        // filter may run, every pixel whose window such a beam crosses is
+        // flagged, by the beam's geometry alone.
+        let beams: Vec<profile::BeamLight> = if profile_on {
+            stage_lights
+                .points
+                .iter()
+                .map(|p| profile::BeamLight::new(&p.light, p.casts_shadows))
+                .collect()
+        } else {
+            Vec::new()
+        };
+        if !beams.is_empty() {
+            let mut flagged = vec![false; n];
+            for &i in &edges {
+                flagged[i] = true;
+            }
+            let thin: Vec<usize> = (0..n)
+                .into_par_iter()
+                .filter(|&i| {
+                    let (x, y) = (i % w, i / w);
+                    !flagged[i] && !unlit(x as isize, y as isize) && profile::thin_beam_touches(&beams, &cam, filter.radius(), x, y)
+                })
+                .collect();
+            if !thin.is_empty() {
+                for &i in &thin {
+                    flagged[i] = true;
+                }
+                smooth.retain(|&i| !flagged[i]);
+                edges.extend(thin);
+                edges.sort_unstable();
+            }
+        }
         stats.max_abs += lap_abs;
         stats.max_rel += lap_rel;
         t = report.time("pixel_filter_classify", t);
@@ -2630,12 +2665,14 @@ fn render_channels<const C: usize, const K: usize>(
         // Pixels across a spot's beam, from its profile, without lattice rays.
         let (profiled, edges) = match &smooth_scene {
             Ok((planes, casters)) if profile_on && !edges.is_empty() => {
-                let beams: Vec<profile::BeamLight> = stage_lights
-                    .points
-                    .iter()
-                    .map(|p| profile::BeamLight::new(&p.light, p.casts_shadows))
-                    .collect();
-                t = report.time("pixel_filter_profile_tables", t);
+                let trace = |x: f64, y: f64| -> profile::TracedRay {
+                    let s = sample(x, y);
+                    profile::TracedRay {
+                        inscatter: s.l,
+                        error: s.e,
+                        t_end: if s.hit { s.depth } else { cam.clip_end },
+                    }
+                };
                 let input = profile::ProfileInput {
                     cam: &cam,
                     width: w,
@@ -2651,6 +2688,7 @@ fn render_channels<const C: usize, const K: usize>(
                     media: &media,
                     light_images: &light_images,
                     window_scale: &window_scale,
+                    trace: &trace,
                 };
                 profile::filter_by_profile(&input, &edges)
             }

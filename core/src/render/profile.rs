@@ -215,6 +215,18 @@ pub(crate) struct ProfileInput<'a, const C: usize> {
     pub media: &'a [PreparedMedium<C>],
     pub light_images: &'a [(f64, f64)],
     pub window_scale: &'a (dyn Fn(usize) -> f64 + Sync),
+    /// An exact view ray through an image point (the render's own integrator).
+    pub trace: &'a (dyn Fn(f64, f64) -> TracedRay + Sync),
+}
+
+/// An exact view ray's result, for the thin-beam path.
+pub(crate) struct TracedRay {
+    /// In-scatter, RGB.
+    pub inscatter: [f64; 3],
+    /// Its error estimate, RGB.
+    pub error: [f64; 3],
+    /// Where the ray ends, m from the eye (surface, clip end or ∞).
+    pub t_end: f64,
 }
 
 /// A pixel the model served.
@@ -274,7 +286,21 @@ pub(crate) fn filter_by_profile<const C: usize>(input: &ProfileInput<'_, C>, can
             .iter()
             .any(|&(ix, iy)| (ix - cx).abs() <= LIGHT_IMAGE_MARGIN && (iy - cy).abs() <= LIGHT_IMAGE_MARGIN)
     };
-    let (mut eligible, mut rest): (Vec<usize>, Vec<usize>) = candidates.iter().partition(|&&i| {
+    // Beams thinner than a node spacing: along their centre line, one ray per node.
+    let norm = window_norm(&input.filter);
+    let thin: Vec<Option<ProfilePixel>> = candidates
+        .par_iter()
+        .map(|&i| (0..input.lights.len()).find_map(|k| serve_thin(input, k, i, norm)))
+        .collect();
+    let mut served: Vec<ProfilePixel> = Vec::new();
+    let mut open: Vec<usize> = Vec::new();
+    for (p, &i) in thin.into_iter().zip(candidates) {
+        match p {
+            Some(p) => served.push(p),
+            None => open.push(i),
+        }
+    }
+    let (mut eligible, mut rest): (Vec<usize>, Vec<usize>) = open.iter().partition(|&&i| {
         let (x, y) = (i % w, i / w);
         x >= STENCIL && y >= STENCIL && x + STENCIL < w && y + STENCIL < h && !near_image(x, y)
     });
@@ -290,7 +316,6 @@ pub(crate) fn filter_by_profile<const C: usize>(input: &ProfileInput<'_, C>, can
         }
     }
     let results: Vec<(Vec<ProfilePixel>, Vec<usize>)> = tiles.par_iter().map(|tile| serve_tile(input, tile)).collect();
-    let mut served = Vec::new();
     for (s, left) in results {
         served.extend(s);
         rest.extend(left);
@@ -756,6 +781,263 @@ fn serve_pixel<const C: usize>(
     let scale = value.iter().fold(0.0f64, |m, v| m.max(v.abs())).max((input.window_scale)(i));
     let e_max = error.iter().fold(0.0f64, |m, v| m.max(*v));
     (e_max <= input.tolerance * scale).then_some(ProfilePixel {
+        index: i,
+        light: k,
+        value,
+        error,
+    })
+}
+
+/// `∫∫ w(x) w(y) dx dy` of the window (midpoint rule, 4 096 nodes a side).
+fn window_norm(filter: &PixelFilter) -> f64 {
+    let r = filter.radius();
+    let n = 4096;
+    let h = 2.0 * r / n as f64;
+    let one: f64 = (0..n).map(|i| filter.weight(-r + (i as f64 + 0.5) * h)).sum::<f64>() * h;
+    one * one
+}
+
+/// `±sin ψ` of light `light` for the ray through image point `q`, and its
+/// gradient, per px (central differences over 1/64 px).
+fn s_and_gradient<const C: usize>(input: &ProfileInput<'_, C>, light: &BeamLight, q: [f64; 2]) -> (f64, [f64; 2]) {
+    let cam = input.cam;
+    let at = |px: f64, py: f64| {
+        let d = cam.direction(px, py);
+        light.plane_of(cam.position + d * cam.start_distance(d), d).0
+    };
+    let e = 1.0 / 64.0;
+    let g = [
+        (at(q[0] + e, q[1]) - at(q[0] - e, q[1])) / (2.0 * e),
+        (at(q[0], q[1] + e) - at(q[0], q[1] - e)) / (2.0 * e),
+    ];
+    (at(q[0], q[1]), g)
+}
+
+/// The widest beam the thin path takes, px across: the narrowest the main
+/// path takes ([`MIN_BEAM_NODES`] node spacings).
+const THIN_BEAM_PX: f64 = MIN_BEAM_NODES / NODES_PER_PX as f64;
+
+/// Whether a beam narrower than [`MIN_BEAM_NODES`] node spacings crosses
+/// the window of pixel `(x, y)`: its centre samples may all miss it, so the
+/// pixel needs the filter integral although its samples are flat.
+pub(crate) fn thin_beam_touches(lights: &[BeamLight], cam: &CameraRays, radius: f64, x: usize, y: usize) -> bool {
+    let c = [x as f64 + 0.5, y as f64 + 0.5];
+    let e = 1.0 / 64.0;
+    lights.iter().any(|light| {
+        let at = |px: f64, py: f64| {
+            let d = cam.direction(px, py);
+            light.plane_of(cam.position + d * cam.start_distance(d), d).0
+        };
+        let s0 = at(c[0], c[1]);
+        let g = (at(c[0] + e, c[1]) - s0) / e;
+        let gy = (at(c[0], c[1] + e) - s0) / e;
+        let gn = g.hypot(gy);
+        if !(gn.is_finite() && s0.is_finite()) {
+            return true;
+        }
+        let b = light.sin_reach / gn;
+        2.0 * b < MIN_BEAM_NODES / NODES_PER_PX as f64 && s0.abs() / gn <= radius * std::f64::consts::SQRT_2 + b
+    })
+}
+
+/// Gauss–Legendre nodes and weights on [−1, 1], 8 and 16 points.
+const GL8: [(f64, f64); 8] = [
+    (-0.960_289_856_497_536_2, 0.101_228_536_290_376_26),
+    (-0.796_666_477_413_626_7, 0.222_381_034_453_374_48),
+    (-0.525_532_409_916_329, 0.313_706_645_877_887_27),
+    (-0.183_434_642_495_649_8, 0.362_683_783_378_362),
+    (0.183_434_642_495_649_8, 0.362_683_783_378_362),
+    (0.525_532_409_916_329, 0.313_706_645_877_887_27),
+    (0.796_666_477_413_626_7, 0.222_381_034_453_374_48),
+    (0.960_289_856_497_536_2, 0.101_228_536_290_376_26),
+];
+const GL16: [(f64, f64); 16] = [
+    (-0.989_400_934_991_649_9, 0.027_152_459_411_754_095),
+    (-0.944_575_023_073_232_6, 0.062_253_523_938_647_89),
+    (-0.865_631_202_387_831_7, 0.095_158_511_682_492_78),
+    (-0.755_404_408_355_003, 0.124_628_971_255_533_87),
+    (-0.617_876_244_402_643_8, 0.149_595_988_816_576_73),
+    (-0.458_016_777_657_227_4, 0.169_156_519_395_002_54),
+    (-0.281_603_550_779_258_9, 0.182_603_415_044_923_6),
+    (-0.095_012_509_837_637_44, 0.189_450_610_455_068_5),
+    (0.095_012_509_837_637_44, 0.189_450_610_455_068_5),
+    (0.281_603_550_779_258_9, 0.182_603_415_044_923_6),
+    (0.458_016_777_657_227_4, 0.169_156_519_395_002_54),
+    (0.617_876_244_402_643_8, 0.149_595_988_816_576_73),
+    (0.755_404_408_355_003, 0.124_628_971_255_533_87),
+    (0.865_631_202_387_831_7, 0.095_158_511_682_492_78),
+    (0.944_575_023_073_232_6, 0.062_253_523_938_647_89),
+    (0.989_400_934_991_649_9, 0.027_152_459_411_754_095),
+];
+
+/// A beam narrower than [`THIN_BEAM_PX`] across the window of pixel `i`:
+/// too few nodes across it for the main path, too few centre samples
+/// inside it for `G`. The window integral is taken in the beam's own
+/// coordinates: along its centre line `s = 0` by the trapezoid rule on 7
+/// interior nodes (the window is 0 at both ends, so the rule converges
+/// fast; every other node gives the estimate), and across it, at each
+/// node, over `δ = b·sin θ` (Gauss–Legendre in θ, 16 nodes against 8; the
+/// substitution smooths a hard edge's square root). Across, `L = G(δ)·A(s)`
+/// with `A` and `s` exact (geometry) and `G` the quadratic through three
+/// exact rays at `δ = 0, ±b/2`; the quadratic's departure from the line
+/// through them is charged as that model's error.
+fn serve_thin<const C: usize>(input: &ProfileInput<'_, C>, k: usize, i: usize, norm: f64) -> Option<ProfilePixel> {
+    let w = input.width;
+    let (x, y) = (i % w, i / w);
+    let light = &input.lights[k];
+    let r = input.filter.radius();
+    let c = [x as f64 + 0.5, y as f64 + 0.5];
+    let (s0, g) = s_and_gradient(input, light, c);
+    let gn = g[0].hypot(g[1]);
+    if !(gn > 0.0 && gn.is_finite() && s0.is_finite()) {
+        return None;
+    }
+    let b = light.sin_reach / gn;
+    if 2.0 * b >= THIN_BEAM_PX || s0.abs() / gn > r * std::f64::consts::SQRT_2 + b {
+        return None;
+    }
+    // Not near a light's image: the beam's apex must be outside the window.
+    if input
+        .light_images
+        .iter()
+        .any(|&(ix, iy)| (ix - c[0]).abs() <= r + 1.0 && (iy - c[1]).abs() <= r + 1.0)
+    {
+        return None;
+    }
+    // Every other light's cone clear of the window, with a Lipschitz margin.
+    for (j, other) in input.lights.iter().enumerate() {
+        if j != k {
+            let (sj, gj) = s_and_gradient(input, other, c);
+            let clear = sj.abs() > other.sin_reach + 3.0 * r * gj[0].hypot(gj[1]);
+            if !clear {
+                return None;
+            }
+        }
+    }
+    // The centre line, clipped to the window's square widened by 2b: beyond
+    // that the whole band is outside the window.
+    let foot = [c[0] - s0 * g[0] / (gn * gn), c[1] - s0 * g[1] / (gn * gn)];
+    let dir = [-g[1] / gn, g[0] / gn];
+    let reach = r + 2.0 * b;
+    let (mut ta, mut tb) = (f64::NEG_INFINITY, f64::INFINITY);
+    for a in 0..2 {
+        if dir[a].abs() < 1e-12 {
+            if (foot[a] - c[a]).abs() > reach {
+                return None;
+            }
+            continue;
+        }
+        let (t1, t2) = ((c[a] - reach - foot[a]) / dir[a], (c[a] + reach - foot[a]) / dir[a]);
+        ta = ta.max(t1.min(t2));
+        tb = tb.min(t1.max(t2));
+    }
+    if tb.is_nan() || ta.is_nan() || tb <= ta {
+        return None;
+    }
+    let cam = input.cam;
+    let window = |p: [f64; 2]| input.filter.weight(p[0] - c[0]) * input.filter.weight(p[1] - c[1]);
+    let s_at = |p: [f64; 2]| {
+        let d = cam.direction(p[0], p[1]);
+        light.plane_of(cam.position + d * cam.start_distance(d), d).0
+    };
+    // One exact ray: `G = L/A` there, its own relative error.
+    let g_at = |p: [f64; 2]| -> Option<([f64; 3], f64)> {
+        let a = light.table.eval(s_at(p).abs());
+        if a.is_nan() || a < KNOWN_FRACTION * light.table.peak {
+            return None;
+        }
+        let tr = (input.trace)(p[0], p[1]);
+        let d = cam.direction(p[0], p[1]);
+        chord_ok(input, k, cam.position + d * cam.start_distance(d), d, tr.t_end)?;
+        let largest = tr.inscatter.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+        let own = tr.error.iter().fold(0.0f64, |m, v| m.max(*v));
+        Some((tr.inscatter.map(|l| l / a), if largest > 0.0 { own / largest } else { 0.0 }))
+    };
+    // At the line's node t: (value, across-rule difference, G-model term), per channel, and the own error.
+    type Across = ([f64; 3], [f64; 3], [f64; 3], f64);
+    let node = |t: f64| -> Option<Across> {
+        let mut q = [foot[0] + t * dir[0], foot[1] + t * dir[1]];
+        let start = q;
+        let mut gq = g;
+        for _ in 0..3 {
+            let (sq, gg) = s_and_gradient(input, light, q);
+            let n2 = gg[0] * gg[0] + gg[1] * gg[1];
+            if n2.is_nan() || n2 <= 0.0 {
+                return None;
+            }
+            q = [q[0] - sq * gg[0] / n2, q[1] - sq * gg[1] / n2];
+            gq = gg;
+        }
+        // The line must stay nearly straight across the window, and the
+        // band within the widened square.
+        let gqn = gq[0].hypot(gq[1]);
+        let bq = light.sin_reach / gqn;
+        if (q[0] - start[0]).hypot(q[1] - start[1]) > 0.05 || bq > 1.5 * b || 2.0 * bq >= THIN_BEAM_PX {
+            return None;
+        }
+        let nq = [gq[0] / gqn, gq[1] / gqn];
+        let at = |delta: f64| [q[0] + delta * nq[0], q[1] + delta * nq[1]];
+        // Nothing to integrate where the whole band is outside the window.
+        if window(at(-bq)) == 0.0 && window(q) == 0.0 && window(at(bq)) == 0.0 {
+            let lo = [q[0] - bq, q[1] - bq];
+            let hi = [q[0] + bq, q[1] + bq];
+            if lo[0] > c[0] + r || hi[0] < c[0] - r || lo[1] > c[1] + r || hi[1] < c[1] - r {
+                return Some(([0.0; 3], [0.0; 3], [0.0; 3], 0.0));
+            }
+        }
+        let (g0, e0) = g_at(q)?;
+        let (gp, ep) = g_at(at(0.5 * bq))?;
+        let (gm, em) = g_at(at(-0.5 * bq))?;
+        let across = |n: &[(f64, f64)]| -> ([f64; 3], [f64; 3]) {
+            let (mut v, mut curv) = ([0.0f64; 3], [0.0f64; 3]);
+            for &(u, wgt) in n {
+                let theta = u * std::f64::consts::FRAC_PI_2;
+                let delta = bq * theta.sin();
+                let p = at(delta);
+                let f = wgt * std::f64::consts::FRAC_PI_2 * bq * theta.cos() * window(p) * light.table.eval(s_at(p).abs());
+                if f == 0.0 {
+                    continue;
+                }
+                let z = delta / (0.5 * bq);
+                for ch in 0..3 {
+                    let slope = 0.5 * (gp[ch] - gm[ch]);
+                    let bend = 0.5 * (gp[ch] + gm[ch] - 2.0 * g0[ch]);
+                    v[ch] += f * (g0[ch] + slope * z + bend * z * z);
+                    curv[ch] += (f * bend * z * z).abs();
+                }
+            }
+            (v, curv)
+        };
+        let (v16, curv) = across(&GL16);
+        let (v8, _) = across(&GL8);
+        let diff: [f64; 3] = std::array::from_fn(|ch| (v16[ch] - v8[ch]).abs());
+        Some((v16, diff, curv, e0.max(ep).max(em)))
+    };
+    let intervals = 8;
+    let h = (tb - ta) / intervals as f64;
+    let (mut fine, mut coarse, mut rule, mut model, mut own) = ([0.0f64; 3], [0.0f64; 3], [0.0f64; 3], [0.0f64; 3], 0.0f64);
+    for kk in 1..intervals {
+        let (v, d, m, e) = node(ta + kk as f64 * h)?;
+        own = own.max(e);
+        for ch in 0..3 {
+            fine[ch] += h * v[ch];
+            if kk % 2 == 0 {
+                coarse[ch] += 2.0 * h * v[ch];
+            }
+            rule[ch] += h * d[ch];
+            model[ch] += h * m[ch];
+        }
+    }
+    let table_rel = light.table.error / (KNOWN_FRACTION * light.table.peak);
+    let value = fine.map(|v| v / norm);
+    let error: [f64; 3] =
+        std::array::from_fn(|ch| ((fine[ch] - coarse[ch]).abs() + rule[ch] + model[ch]) / norm + (own + 2.0 * table_rel) * value[ch].abs());
+    if !value.iter().chain(error.iter()).all(|v| v.is_finite()) {
+        return None;
+    }
+    let m = value.iter().fold(0.0f64, |m, v| m.max(v.abs())).max((input.window_scale)(i));
+    let e_max = error.iter().fold(0.0f64, |m, v| m.max(*v));
+    (e_max <= input.tolerance * m).then_some(ProfilePixel {
         index: i,
         light: k,
         value,
