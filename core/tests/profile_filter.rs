@@ -204,7 +204,7 @@ fn a_narrow_beam_is_filtered_from_its_profile_within_its_estimate() {
             spot("blue", [6.0, 4.0, 6.0], [-4.0, 4.0, 0.0], 6.0, [0.1, 0.2, 1.0]),
         ],
         0.05,
-        iso,
+        iso.clone(),
         true,
     );
     let (served, _, _) = compare("two crossing spots", two, 0.1);
@@ -218,6 +218,18 @@ fn a_narrow_beam_is_filtered_from_its_profile_within_its_estimate() {
         false,
     );
     compare("HG 0.9, looking along the beam", into.clone(), 0.1);
+    // The camera inside a dense beam (the Cycles reference scene): chords start at the camera.
+    let mut inside: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/../tests/data/cycles/camera_in_dense_beam.json"
+        ))
+        .unwrap(),
+    )
+    .unwrap();
+    inside["camera"]["resolution"] = serde_json::json!([64, 36]);
+    let (served, _, _) = compare("camera inside a dense beam", inside, 0.1);
+    assert!(served > 20, "the profile filtered only {served} pixels");
     // Cast Shadow off: no extinction on the light path.
     into["lights"][0]["casts_shadows"] = serde_json::json!(false);
     into["media"][0]["phase"] = serde_json::json!({"type": "rayleigh"});

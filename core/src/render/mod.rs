@@ -1416,8 +1416,8 @@ fn render_channels<const C: usize, const K: usize>(
             .points
             .iter()
             .all(|p| p.light.smooth_between_kinks() && p.light.ellipse.is_none() && p.light.cos_reach > 0.0);
-        if !scene.output.interpolate_smooth_pixels {
-            Err("not asked for (output.interpolate_smooth_pixels false)")
+        if !scene.output.interpolate_smooth_pixels && !scene.output.profile_filter {
+            Err("not asked for (output.interpolate_smooth_pixels and output.profile_filter false)")
         } else if media.is_empty() || stage_lights.is_empty() {
             Err("no stage light in a medium")
         } else if !media_smooth {
@@ -1593,6 +1593,7 @@ fn render_channels<const C: usize, const K: usize>(
     // ([`smooth`]): the conditions of `smooth_on` below that do not need
     // the unlit grid (which needs the same and more).
     let want_topology = smooth_scene.is_ok()
+        && scene.output.interpolate_smooth_pixels
         && !need_ray
         && !want_per_light
         && !want_surface_t
@@ -2625,7 +2626,8 @@ fn render_channels<const C: usize, const K: usize>(
                 .into_par_iter()
                 .filter(|&i| {
                     let (x, y) = (i % w, i / w);
-                    !flagged[i] && !unlit(x as isize, y as isize) && profile::thin_beam_touches(&beams, &cam, filter.radius(), x, y)
+                    // (Unlit tiles included: a window reaches 1.5 px beyond its tile.)
+                    !flagged[i] && profile::thin_beam_touches(&beams, &cam, filter.radius(), x, y)
                 })
                 .collect();
             if !thin.is_empty() {
@@ -2694,6 +2696,23 @@ fn render_channels<const C: usize, const K: usize>(
             }
             _ => (Vec::new(), edges),
         };
+        // The profile gives the in-scatter only: where the transmittance is
+        // filtered too and is not smooth in the window (its filter term over
+        // the tolerance, or a silhouette, within the 3×3 neighbourhood), the
+        // lattice also takes the pixel, and the profile's in-scatter is kept.
+        let mut edges = edges;
+        let mut both = 0u64;
+        if need_t && !profiled.is_empty() {
+            let t_not_smooth = |i: usize| {
+                let (x, y) = (i % w, i / w);
+                (y.saturating_sub(1)..(y + 2).min(h))
+                    .any(|yy| (x.saturating_sub(1)..(x + 2).min(w)).any(|xx| lap_term(xx, yy).1 > tolerance || silhouette(xx, yy)))
+            };
+            let extra: Vec<usize> = profiled.iter().map(|p| p.index).filter(|&i| t_not_smooth(i)).collect();
+            both = extra.len() as u64;
+            edges.extend(extra);
+            edges.sort_unstable();
+        }
         t = report.time("pixel_filter_profile", t);
         let (filtered, lattice) = filter::filter_adaptive(&job, &edges, &sample);
         if cancelled() {
@@ -2743,7 +2762,7 @@ fn render_channels<const C: usize, const K: usize>(
             edge.max_abs = edge.max_abs.max(e_max);
             edge.max_rel = edge.max_rel.max(if m > 0.0 { e_max / m } else { 0.0 });
         }
-        edge.pixels += profiled.len() as u64;
+        edge.pixels += profiled.len() as u64 - both;
         edge.profile_pixels = profiled.len() as u64;
         if profile_on {
             report.plan.computed(
@@ -2809,7 +2828,7 @@ fn render_channels<const C: usize, const K: usize>(
         Err(why) if scene.output.interpolate_smooth_pixels && !stage_lights.is_empty() && !media.is_empty() => {
             report.plan.computed("every lit pixel's view ray", format!("no pixel interpolated: {why}"))
         }
-        Ok(_) => report.plan.computed(
+        Ok(_) if scene.output.interpolate_smooth_pixels => report.plan.computed(
             "every lit pixel's view ray",
             "no pixel interpolated: only for in-scatter layers (and the error), not per light, with unlit tiles on",
         ),

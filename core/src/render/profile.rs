@@ -65,7 +65,6 @@ use super::smooth::{Casters, Planes};
 use crate::geometry::camera::CameraRays;
 use crate::light::PointSource;
 use crate::medium::PreparedMedium;
-use crate::numeric::integrate_adaptive;
 use glam::DVec3;
 use rayon::prelude::*;
 
@@ -93,9 +92,12 @@ const TABLE_CELLS: usize = 512;
 /// `A(ψ)` of one light, tabulated in `q = √(1 − s/s_max)`, `s = sin ψ`: a
 /// hard cone edge makes `A` a square root of the distance to the edge,
 /// linear in `q`.
-#[derive(Debug, Clone)]
 pub(crate) struct ProfileTable {
     s_max: f64,
+    cos_reach: f64,
+    kinks: Vec<f64>,
+    /// The profile `I(cos θ)` (the light's `factor_cos`), for partial chords.
+    profile: std::sync::Arc<dyn Fn(f64) -> f64 + Send + Sync>,
     values: Vec<f64>,
     /// Largest difference between the table's interpolant and `A` at its
     /// cells' midpoints, absolute.
@@ -108,6 +110,8 @@ impl ProfileTable {
     /// The table of an axial light ([`PointSource::is_axial`], `cos_reach > 0`).
     pub(crate) fn new<const C: usize>(light: &PointSource<C>) -> ProfileTable {
         let cos_reach = light.cos_reach;
+        let shape = light.clone();
+        let profile: std::sync::Arc<dyn Fn(f64) -> f64 + Send + Sync> = std::sync::Arc::new(move |c| shape.factor_cos(c));
         let s_max = (1.0 - cos_reach * cos_reach).max(0.0).sqrt();
         let kinks: Vec<f64> = light.kinks().as_slice().to_vec();
         let abel = |s: f64| -> f64 {
@@ -128,8 +132,12 @@ impl ProfileTable {
             cuts.sort_by(f64::total_cmp);
             let mut total = 0.0;
             for pair in cuts.windows(2) {
-                let r = integrate_adaptive(|v| [light.factor_cos(cos_psi * v.cos())], pair[0], pair[1], 1e-15, 1e-12, 200);
-                total += r.value[0];
+                let (mid, half) = (0.5 * (pair[0] + pair[1]), 0.5 * (pair[1] - pair[0]));
+                total += GL16
+                    .iter()
+                    .map(|&(u, w)| w * light.factor_cos(cos_psi * (mid + half * u).cos()))
+                    .sum::<f64>()
+                    * half;
             }
             2.0 * total
         };
@@ -143,10 +151,58 @@ impl ProfileTable {
             .fold(0.0f64, f64::max);
         ProfileTable {
             s_max,
+            cos_reach,
+            kinks,
+            profile,
             peak: values[TABLE_CELLS],
             values,
             error,
         }
+    }
+
+    /// `q` of `s = sin ψ` and the chord's half-width `c` (rad) in the ray's plane.
+    #[inline]
+    fn chord_half_width(&self, s: f64) -> f64 {
+        let cos_psi = (1.0 - s * s).max(0.0).sqrt();
+        (self.cos_reach / cos_psi).clamp(-1.0, 1.0).acos()
+    }
+
+    /// The part of `A(ψ)` on the chord's angles `[lo, hi]` (rad from the
+    /// axis's projection, clamped to `[−c, c]`), and its error: Gauss–Legendre
+    /// with 8 nodes on each piece between the profile's kinks (±), its
+    /// difference from 4 nodes the estimate. Only chords cut by a surface or
+    /// the camera need this, a few nodes per image.
+    pub(crate) fn partial(&self, s: f64, lo: f64, hi: f64) -> (f64, f64) {
+        let cos_psi = (1.0 - s * s).max(0.0).sqrt();
+        if cos_psi <= self.cos_reach {
+            return (0.0, 0.0);
+        }
+        let c = self.chord_half_width(s);
+        let (lo, hi) = (lo.max(-c), hi.min(c));
+        if hi <= lo {
+            return (0.0, 0.0);
+        }
+        let mut cuts: Vec<f64> = vec![lo, hi];
+        for k in self.kinks.iter().filter(|k| **k < cos_psi) {
+            let v = (k / cos_psi).clamp(-1.0, 1.0).acos();
+            cuts.extend([v, -v].into_iter().filter(|v| *v > lo && *v < hi));
+        }
+        cuts.sort_by(f64::total_cmp);
+        let (mut total, mut error) = (0.0, 0.0);
+        for pair in cuts.windows(2) {
+            let (mid, half) = (0.5 * (pair[0] + pair[1]), 0.5 * (pair[1] - pair[0]));
+            let rule = |nodes: &[(f64, f64)]| {
+                nodes
+                    .iter()
+                    .map(|&(u, w)| w * (self.profile)(cos_psi * (mid + half * u).cos()))
+                    .sum::<f64>()
+                    * half
+            };
+            let (g8, g4) = (rule(&GL8), rule(&GL4));
+            total += g8;
+            error += (g8 - g4).abs();
+        }
+        (total, error)
     }
 
     /// `A` at `s = sin ψ` (0 at and beyond the cone's edge).
@@ -166,7 +222,6 @@ impl ProfileTable {
 pub(crate) struct BeamLight {
     position: DVec3,
     axis: DVec3,
-    cos_reach: f64,
     sin_reach: f64,
     /// Whether the medium dims the light path (`casts_shadows`).
     light_path_extinction: bool,
@@ -178,7 +233,6 @@ impl BeamLight {
         BeamLight {
             position: light.position,
             axis: light.frame.axis,
-            cos_reach: light.cos_reach,
             sin_reach: (1.0 - light.cos_reach * light.cos_reach).max(0.0).sqrt(),
             light_path_extinction: casts_shadows,
             table: ProfileTable::new(light),
@@ -275,8 +329,11 @@ fn catmull_rom(t: f64) -> [f64; 4] {
 pub(crate) fn filter_by_profile<const C: usize>(input: &ProfileInput<'_, C>, candidates: &[usize]) -> (Vec<ProfilePixel>, Vec<usize>) {
     let (w, h) = (input.width, input.height);
     let r = input.filter.radius();
-    // The window's reach must stay inside the stencil (±1.5 px for Blender's).
-    if r <= 0.0 || r > 1.5 || input.lights.is_empty() {
+    // The window's reach must stay inside the stencil (±1.5 px for
+    // Blender's), and end on a node (the trapezoid rule's last node, where
+    // the window is 0 with its derivatives).
+    let on_node = (r * NODES_PER_PX as f64 - (r * NODES_PER_PX as f64).round()).abs() < 1e-9;
+    if r <= 0.0 || r > 1.5 || !on_node || input.lights.is_empty() {
         return (Vec::new(), candidates.to_vec());
     }
     let near_image = |x: usize, y: usize| {
@@ -353,7 +410,7 @@ fn serve_tile<const C: usize>(input: &ProfileInput<'_, C>, pixels: &[usize]) -> 
             cw: x1 - x0 + 2 * STENCIL,
             ch: y1 - y0 + 2 * STENCIL,
         };
-        let centres = centre_grid(input, k, light, &region);
+        let centres = centre_grid(input, k, light, &region, &left);
         let nx = (x1 - x0) * NODES_PER_PX + weights.len();
         let ny = (y1 - y0) * NODES_PER_PX + weights.len();
         let mut nodes = Nodes {
@@ -412,10 +469,28 @@ fn ray_of<const C: usize>(input: &ProfileInput<'_, C>, px: f64, py: f64, group: 
     (o, d, t_end)
 }
 
-/// Whether the ray's chord through light `k`'s cone lies whole inside the
-/// ray, unshadowed, and the ray misses every other light's cone. Returns the
-/// light's `(±sin ψ, h, m)` when so.
-fn chord_ok<const C: usize>(input: &ProfileInput<'_, C>, k: usize, o: DVec3, d: DVec3, t_end: f64) -> Option<(f64, f64, DVec3)> {
+/// A view ray's chord through light `k`'s cone.
+struct Chord {
+    /// `±sin ψ`.
+    s: f64,
+    /// The ray's distance from the light, m.
+    h: f64,
+    /// `(o − L) × d`.
+    m: DVec3,
+    /// `A` over the part of the chord inside the ray (0 where it misses the cone).
+    a: f64,
+    /// The partial-chord table's error in `a` (0 for a whole or empty chord).
+    a_error: f64,
+}
+
+/// The ray's chord through light `k`'s cone, given where the ray starts
+/// (`o`) and ends (`t_end` from the eye), or `None` where the model does not
+/// hold: the ray may be shadowed or touches another light's cone, or (with
+/// `allow_partial` false) the ray's start or end cuts the chord. In the
+/// ray's plane the chord spans the angles `[−c, c]` about the axis's
+/// projection `p̂`, and the ray the angles from its start's direction to
+/// its end's (less than π, increasing about `m`).
+fn chord<const C: usize>(input: &ProfileInput<'_, C>, k: usize, o: DVec3, d: DVec3, t_end: f64, allow_partial: bool) -> Option<Chord> {
     let cam = input.cam;
     if t_end.is_nan() {
         return None;
@@ -423,47 +498,109 @@ fn chord_ok<const C: usize>(input: &ProfileInput<'_, C>, k: usize, o: DVec3, d: 
     for (j, other) in input.lights.iter().enumerate() {
         if j != k {
             let (s, hj, _) = other.plane_of(o, d);
-            if !(hj > 0.0 && s.abs() > other.sin_reach * (1.0 + 1e-9) + 1e-12) {
+            let clear = hj > 0.0 && s.abs() > other.sin_reach * (1.0 + 1e-9) + 1e-12;
+            if !clear {
                 return None;
             }
         }
     }
     let light = &input.lights[k];
-    let (s, hk, m) = light.plane_of(o, d);
-    if !(hk > 0.0 && hk.is_finite()) {
+    let (s, h, m) = light.plane_of(o, d);
+    if h.is_nan() || h <= 0.0 || h.is_infinite() {
         return None;
     }
-    if s.abs() >= light.sin_reach {
-        // The ray's plane misses the cone: no chord at all.
-        return Some((s, hk, m));
+    let sa = s.abs();
+    let mut out = Chord {
+        s,
+        h,
+        m,
+        a: 0.0,
+        a_error: 0.0,
+    };
+    if sa >= light.sin_reach {
+        // The ray's plane misses the cone.
+        return Some(out);
     }
-    if input.casters[k].may_shadow(cam.position, d, t_end) {
+    let mh = m / h;
+    let p = (light.axis - mh * light.axis.dot(mh)).normalize_or_zero();
+    if p == DVec3::ZERO {
         return None;
     }
-    let outside = |v: DVec3| v.dot(light.axis) < light.cos_reach * v.length() * (1.0 - 1e-9);
     let v_start = o - light.position;
     let v_end = if t_end.is_finite() {
         cam.position + d * t_end - light.position
     } else {
         d
     };
-    if !outside(v_start) || !outside(v_end) {
-        return None;
+    let casters = &input.casters[k];
+    // The common case first, without angles: both ends outside the cone
+    // and p̂ between their directions — the chord is whole.
+    let outside = |v: DVec3| v.dot(light.axis) < light.table.cos_reach * v.length() * (1.0 - 1e-9);
+    if outside(v_start) && outside(v_end) {
+        if v_start.cross(p).dot(m) < 0.0 || p.cross(v_end).dot(m) < 0.0 {
+            // The cone is beyond one end of the ray: no chord.
+            return Some(out);
+        }
+        out.a = light.table.eval(sa);
+        if matches!(casters, Casters::None) || !casters.may_shadow(cam.position, d, t_end) {
+            return Some(out);
+        }
     }
-    // p̂, the axis projected into the plane, between the ends' directions.
-    let mh = m / hk;
-    let p = light.axis - mh * light.axis.dot(mh);
-    if v_start.cross(p).dot(m) < 0.0 || p.cross(v_end).dot(m) < 0.0 {
-        return None;
+    // Angles in the plane about m̂ from p̂; the ray sweeps from its start's
+    // direction to its end's (less than π, increasing).
+    let angle = |v: DVec3| p.cross(v).dot(mh).atan2(p.dot(v));
+    let (a0, mut a1) = (angle(v_start), angle(v_end));
+    if a1 < a0 {
+        a1 += 2.0 * std::f64::consts::PI;
     }
-    Some((s, hk, m))
+    let c = light.table.chord_half_width(sa);
+    for centre in [0.0, 2.0 * std::f64::consts::PI] {
+        let (lo, hi) = ((centre - c).max(a0), (centre + c).min(a1));
+        if hi <= lo {
+            continue;
+        }
+        if a0 <= centre - c && a1 >= centre + c {
+            out.a = light.table.eval(sa);
+        } else if !allow_partial {
+            return None;
+        } else {
+            (out.a, out.a_error) = light.table.partial(sa, lo - centre, hi - centre);
+        }
+        // Shadows can only fall on the chord: whether they may is asked of
+        // the ray up to the chord's end (at angle `hi` in the plane; the
+        // ray's point at angle φ is `t = t_c + h·tan(φ − φ_n)` from `o`, φ_n
+        // the angle of the closest point's direction `n̂`).
+        if !matches!(casters, Casters::None) {
+            let t_c = -v_start.dot(d);
+            let n_hat = (v_start + d * t_c) / h;
+            let t_hi = t_c + h * (hi - angle(n_hat)).tan();
+            let t_chord_end = (o - cam.position).length() + t_hi;
+            if t_hi.is_nan() || casters.may_shadow(cam.position, d, t_chord_end.min(t_end)) {
+                return None;
+            }
+        }
+        return Some(out);
+    }
+    out.a = 0.0;
+    Some(out)
 }
 
-fn centre_grid<const C: usize>(input: &ProfileInput<'_, C>, k: usize, light: &BeamLight, region: &Region) -> Vec<Centre> {
+/// The model's data at the centres of `region` that the stencils of `pixels` read.
+fn centre_grid<const C: usize>(input: &ProfileInput<'_, C>, k: usize, light: &BeamLight, region: &Region, pixels: &[usize]) -> Vec<Centre> {
     let w = input.width;
     let mut grid = vec![Centre::default(); region.cw * region.ch];
+    let mut needed = vec![false; region.cw * region.ch];
+    for &i in pixels {
+        let (x, y) = (i % w - region.cx0, i / w - region.cy0);
+        for cy in y - STENCIL..=y + STENCIL {
+            needed[cy * region.cw + x - STENCIL..=cy * region.cw + x + STENCIL].fill(true);
+        }
+    }
     for cy in 0..region.ch {
         for cx in 0..region.cw {
+            if !needed[cy * region.cw + cx] {
+                continue;
+            }
             let (x, y) = (region.cx0 + cx, region.cy0 + cy);
             let i = y * w + x;
             let s = input.surface[i];
@@ -472,7 +609,10 @@ fn centre_grid<const C: usize>(input: &ProfileInput<'_, C>, k: usize, light: &Be
                 continue;
             }
             let (o, d, t_end) = ray_of(input, x as f64 + 0.5, y as f64 + 0.5, group);
-            let Some((sin_psi, hk, m)) = chord_ok(input, k, o, d, t_end) else {
+            let Some(Chord {
+                s: sin_psi, h: hk, m, a, ..
+            }) = chord(input, k, o, d, t_end, true)
+            else {
                 continue;
             };
             // G₀ = S(x₀)/h at the ray's point in the direction p̂.
@@ -514,7 +654,6 @@ fn centre_grid<const C: usize>(input: &ProfileInput<'_, C>, k: usize, light: &Be
                 sin_psi,
                 ..Centre::default()
             };
-            let a = light.table.eval(sin_psi.abs());
             if a >= KNOWN_FRACTION * light.table.peak {
                 let l = input.inscatter[i].map(f64::from);
                 let largest = l.iter().fold(0.0f64, |m, v| m.max(v.abs()));
@@ -609,7 +748,8 @@ fn node_value<const C: usize>(
     let (ix, iy) = (fx as usize, fy as usize);
     // The node's ray ends on the surface of one of the four centres around
     // it: its chord must be whole for each of them.
-    let mut sin_psi = f64::NAN;
+    // (A on the same chord for each of them).
+    let (mut a, mut a_error) = (f64::NAN, 0.0f64);
     let mut groups = [u32::MAX; 4];
     for (n, (ca, cb)) in [(0, 0), (1, 0), (0, 1), (1, 1)].into_iter().enumerate() {
         let g = at(ix + ca, iy + cb).group;
@@ -618,10 +758,12 @@ fn node_value<const C: usize>(
         }
         groups[n] = g;
         let (o, d, t_end) = ray_of(input, px, py, g);
-        let (s, _, _) = chord_ok(input, k, o, d, t_end)?;
-        sin_psi = s.abs();
+        let ch = chord(input, k, o, d, t_end, true)?;
+        if !a.is_nan() && (ch.a - a).abs() > 1e-12 * light.table.peak {
+            return None;
+        }
+        (a, a_error) = (ch.a, a_error.max(ch.a_error));
     }
-    let a = light.table.eval(sin_psi);
     if a == 0.0 {
         return Some(NodeValue {
             value: [0.0; 3],
@@ -665,7 +807,8 @@ fn node_value<const C: usize>(
     };
     for ch in 0..3 {
         out.value[ch] = a * g0_cr * rho_cr[ch];
-        out.error[ch] = (out.value[ch] - a * g0_lin * rho_lin[ch]).abs() + a * g0_cr.abs() * spread[ch];
+        out.error[ch] =
+            (out.value[ch] - a * g0_lin * rho_lin[ch]).abs() + a * g0_cr.abs() * spread[ch] + a_error * (g0_cr * rho_cr[ch]).abs();
     }
     Some(out)
 }
@@ -840,7 +983,13 @@ pub(crate) fn thin_beam_touches(lights: &[BeamLight], cam: &CameraRays, radius: 
     })
 }
 
-/// Gauss–Legendre nodes and weights on [−1, 1], 8 and 16 points.
+/// Gauss–Legendre nodes and weights on [−1, 1], 4, 8 and 16 points.
+const GL4: [(f64, f64); 4] = [
+    (-0.861_136_311_594_052_6, 0.347_854_845_137_453_85),
+    (-0.339_981_043_584_856_3, 0.652_145_154_862_546_1),
+    (0.339_981_043_584_856_3, 0.652_145_154_862_546_1),
+    (0.861_136_311_594_052_6, 0.347_854_845_137_453_85),
+];
 const GL8: [(f64, f64); 8] = [
     (-0.960_289_856_497_536_2, 0.101_228_536_290_376_26),
     (-0.796_666_477_413_626_7, 0.222_381_034_453_374_48),
@@ -948,7 +1097,10 @@ fn serve_thin<const C: usize>(input: &ProfileInput<'_, C>, k: usize, i: usize, n
         }
         let tr = (input.trace)(p[0], p[1]);
         let d = cam.direction(p[0], p[1]);
-        chord_ok(input, k, cam.position + d * cam.start_distance(d), d, tr.t_end)?;
+        let whole = chord(input, k, cam.position + d * cam.start_distance(d), d, tr.t_end, false)?;
+        if whole.a == 0.0 {
+            return None;
+        }
         let largest = tr.inscatter.iter().fold(0.0f64, |m, v| m.max(v.abs()));
         let own = tr.error.iter().fold(0.0f64, |m, v| m.max(*v));
         Some((tr.inscatter.map(|l| l / a), if largest > 0.0 { own / largest } else { 0.0 }))
