@@ -2609,10 +2609,15 @@ fn render_channels<const C: usize, const K: usize>(
         // filter may run, every pixel whose window such a beam crosses is
         // flagged, by the beam's geometry alone.
         let beams: Vec<profile::BeamLight> = if profile_on {
+            let casters = smooth_scene.as_ref().map(|(_, c)| c.as_slice()).unwrap_or(&[]);
             stage_lights
                 .points
                 .iter()
-                .map(|p| profile::BeamLight::new(&p.light, p.casts_shadows))
+                .enumerate()
+                .map(|(k, p)| {
+                    let servable = !matches!(casters.get(k), Some(smooth::Casters::Any) | None);
+                    profile::BeamLight::new(&p.light, p.casts_shadows, servable)
+                })
                 .collect()
         } else {
             Vec::new()
@@ -2672,6 +2677,7 @@ fn render_channels<const C: usize, const K: usize>(
                     profile::TracedRay {
                         inscatter: s.l,
                         error: s.e,
+                        surface: s.surface,
                         t_end: if s.hit { s.depth } else { cam.clip_end },
                     }
                 };
