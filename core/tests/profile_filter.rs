@@ -8,7 +8,19 @@
 //! forward-scattering lobe, a light whose medium is not dimmed (Cast Shadow
 //! off), and a beam cut by the floor.
 
-use tyndall_core::{Scene, render};
+use tyndall_core::{Images, Report, Scene, render};
+
+/// Renders `json` (its `output` replaced) at `tolerance` with the profile
+/// filter, and with the lattice alone: the pixels that differ are the profile's.
+fn with_and_without(json: &mut serde_json::Value, tolerance: f64) -> (Scene, Images, Report, Images) {
+    json["output"] = serde_json::json!({"layers": ["inscatter", "error"], "tolerance": tolerance, "spectral": "never"});
+    let scene = Scene::from_json_str(&json.to_string(), "<t>").unwrap();
+    let (img, report) = render(&scene, None).unwrap();
+    let mut lattice = scene.clone();
+    lattice.output.profile_filter = false;
+    let (plain, _) = render(&lattice, None).unwrap();
+    (scene, img, report, plain)
+}
 
 /// Renders `json` (a scene without `output`) with the profile filter at
 /// `tolerance`, with the lattice alone at the same tolerance (the pixels
@@ -16,13 +28,7 @@ use tyndall_core::{Scene, render};
 /// returns the pixels the profile served, the worst ratio of true error to
 /// estimate among the profile's pixels, and the relative RMSE of the image.
 fn compare(name: &str, mut json: serde_json::Value, tolerance: f64) -> (u64, f64, f64) {
-    json["output"] = serde_json::json!({"layers": ["inscatter", "error"], "tolerance": tolerance, "spectral": "never"});
-    let scene = Scene::from_json_str(&json.to_string(), "<t>").unwrap();
-    let (img, report) = render(&scene, None).unwrap();
-    // The same tolerance with the lattice alone: the pixels that differ are the profile's.
-    let mut lattice = scene.clone();
-    lattice.output.profile_filter = false;
-    let (plain, _) = render(&lattice, None).unwrap();
+    let (scene, img, report, plain) = with_and_without(&mut json, tolerance);
     let mut reference = scene.clone();
     reference.output.tolerance = 1e-6;
     reference.output.profile_filter = false;
@@ -80,13 +86,7 @@ fn compare(name: &str, mut json: serde_json::Value, tolerance: f64) -> (u64, f64
 /// Returns the pixels the profile served and the worst error/estimate.
 fn compare_supersampled(name: &str, mut json: serde_json::Value, tolerance: f64, sub: usize, channels: &[usize]) -> (u64, f64) {
     let (w, h) = (64usize, 36usize);
-    json["output"] = serde_json::json!({"layers": ["inscatter", "error"], "tolerance": tolerance, "spectral": "never"});
-    let scene = Scene::from_json_str(&json.to_string(), "<t>").unwrap();
-    let (img, report) = render(&scene, None).unwrap();
-    // The same with the lattice alone: the pixels that differ are the profile's.
-    let mut lattice = scene.clone();
-    lattice.output.profile_filter = false;
-    let (plain, _) = render(&lattice, None).unwrap();
+    let (_, img, report, plain) = with_and_without(&mut json, tolerance);
     let mut fine_json = json.clone();
     fine_json["camera"]["resolution"] = serde_json::json!([w * sub, h * sub]);
     fine_json["output"] = serde_json::json!({"layers": ["inscatter"], "tolerance": 1e-7, "spectral": "never",

@@ -998,6 +998,12 @@ fn serve_pixel<const C: usize>(
         let quadrature = (value[ch] - coarse[ch] / w_coarse).abs();
         error[ch] = est[ch] / w_fine + quadrature + (own_rel + table_rel) * value[ch].abs() + g_max * table.error;
     }
+    accept(input, i, k, value, error)
+}
+
+/// The pixel, when its value and estimate are finite and the estimate meets
+/// the tolerance of the window's scale (as the lattice's convergence test).
+fn accept<const C: usize>(input: &ProfileInput<'_, C>, i: usize, k: usize, value: [f64; 3], error: [f64; 3]) -> Option<ProfilePixel> {
     if !value.iter().chain(error.iter()).all(|v| v.is_finite()) {
         return None;
     }
@@ -1285,15 +1291,5 @@ fn serve_thin<const C: usize>(input: &ProfileInput<'_, C>, k: usize, i: usize, n
     let value = fine.map(|v| v / norm);
     let error: [f64; 3] =
         std::array::from_fn(|ch| ((fine[ch] - coarse[ch]).abs() + rule[ch] + model[ch]) / norm + (own + 2.0 * table_rel) * value[ch].abs());
-    if !value.iter().chain(error.iter()).all(|v| v.is_finite()) {
-        return None;
-    }
-    let m = value.iter().fold(0.0f64, |m, v| m.max(v.abs())).max((input.window_scale)(i));
-    let e_max = error.iter().fold(0.0f64, |m, v| m.max(*v));
-    (e_max <= input.tolerance * m).then_some(ProfilePixel {
-        index: i,
-        light: k,
-        value,
-        error,
-    })
+    accept(input, i, k, value, error)
 }
