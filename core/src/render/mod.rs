@@ -2770,7 +2770,7 @@ fn render_channels<const C: usize, const K: usize>(
         }
         edge.pixels += profiled.len() as u64 - both;
         edge.profile_pixels = profiled.len() as u64;
-        if profile_on {
+        if !profiled.is_empty() {
             report.plan.computed(
                 format!("pixel filter from the beams' profiles on {} pixels", profiled.len()),
                 "the window integral of G·A(ψ): A the light's profile integrated across its cone along the great circle at the ray plane's angle ψ from the axis (a table per light, exact geometry per node), G = L/A from the centre samples (as ρ·G₀, G₀ the in-scatter density at the chord's middle in closed form), Catmull–Rom on ¼ px nodes, trapezoid rule; estimate: |Catmull–Rom − bilinear| and ρ's spread where extended, |¼ px − ½ px rule|, the samples' own errors and the table's; no lattice rays",
