@@ -268,6 +268,13 @@ impl BeamLight {
         }
     }
 
+    /// `±sin ψ` of the camera's ray through image point `(px, py)`.
+    #[inline]
+    fn sin_psi_at(&self, cam: &CameraRays, px: f64, py: f64) -> f64 {
+        let d = cam.direction(px, py);
+        self.plane_of(cam.position + d * cam.start_distance(d), d).0
+    }
+
     /// `(±sin ψ, h, m)` of the ray from `o` along unit `d`: `m = (o − L) × d`,
     /// `h = |m|`; the sign tells the axis's sides apart.
     #[inline]
@@ -1029,11 +1036,7 @@ fn window_norm(filter: &PixelFilter) -> f64 {
 /// `±sin ψ` of light `light` for the ray through image point `q`, and its
 /// gradient, per px (central differences over 1/64 px).
 fn s_and_gradient<const C: usize>(input: &ProfileInput<'_, C>, light: &BeamLight, q: [f64; 2]) -> (f64, [f64; 2]) {
-    let cam = input.cam;
-    let at = |px: f64, py: f64| {
-        let d = cam.direction(px, py);
-        light.plane_of(cam.position + d * cam.start_distance(d), d).0
-    };
+    let at = |px: f64, py: f64| light.sin_psi_at(input.cam, px, py);
     let e = 1.0 / 64.0;
     let g = [
         (at(q[0] + e, q[1]) - at(q[0] - e, q[1])) / (2.0 * e),
@@ -1066,10 +1069,7 @@ pub(crate) fn thin_beam_touches(lights: &[BeamLight], cam: &CameraRays, radius: 
     let c = [x as f64 + 0.5, y as f64 + 0.5];
     let e = 1.0 / 64.0;
     lights.iter().any(|light| {
-        let at = |px: f64, py: f64| {
-            let d = cam.direction(px, py);
-            light.plane_of(cam.position + d * cam.start_distance(d), d).0
-        };
+        let at = |px: f64, py: f64| light.sin_psi_at(cam, px, py);
         let s0 = at(c[0], c[1]);
         let g = (at(c[0] + e, c[1]) - s0) / e;
         let gy = (at(c[0], c[1] + e) - s0) / e;
@@ -1179,10 +1179,7 @@ fn serve_thin<const C: usize>(input: &ProfileInput<'_, C>, k: usize, i: usize, n
     }
     let cam = input.cam;
     let window = |p: [f64; 2]| input.filter.weight(p[0] - c[0]) * input.filter.weight(p[1] - c[1]);
-    let s_at = |p: [f64; 2]| {
-        let d = cam.direction(p[0], p[1]);
-        light.plane_of(cam.position + d * cam.start_distance(d), d).0
-    };
+    let s_at = |p: [f64; 2]| light.sin_psi_at(cam, p[0], p[1]);
     // One exact ray: `G = L/A` there, its own relative error.
     let seen: std::cell::Cell<Option<u32>> = std::cell::Cell::new(None);
     let g_at = |p: [f64; 2]| -> Option<([f64; 3], f64)> {
