@@ -130,6 +130,23 @@ impl CameraRays {
         }
     }
 
+    /// For a perspective camera, the ray's direction through image point
+    /// `(x, y)` before it is normalised: `D₀ + x·Dₓ + y·D_y`, returned as
+    /// `(D₀, Dₓ, D_y)`. Any quantity linear in the direction (the normal of
+    /// the plane through a point and the ray, say) is then affine in the
+    /// image point. `None` for an equirectangular camera.
+    pub fn affine_direction(&self) -> Option<(DVec3, DVec3, DVec3)> {
+        match &self.kind {
+            Kind::Perspective { basis, plane, shift } => {
+                let d0 = *basis * DVec3::new(-0.5 * plane.0 + shift.0, 0.5 * plane.1 + shift.1, -1.0);
+                let dx = *basis * DVec3::new(self.inv_width * plane.0, 0.0, 0.0);
+                let dy = *basis * DVec3::new(0.0, -self.inv_height * plane.1, 0.0);
+                Some((d0, dx, dy))
+            }
+            Kind::Equirectangular => None,
+        }
+    }
+
     /// Image point `(x, y)` in pixels (as [`Self::direction`] takes them) of the world
     /// point `p`; `None` behind the camera or for an equirectangular camera.
     pub fn project(&self, p: DVec3) -> Option<(f64, f64)> {
@@ -203,6 +220,17 @@ mod tests {
         }
     }
 
+    #[test]
+    fn affine_direction_is_the_unnormalised_direction() {
+        for (fit, shift) in [(SensorFit::Auto, (0.0, 0.0)), (SensorFit::Vertical, (0.1, -0.2))] {
+            let cam = persp([64, 36], fit, shift);
+            let (d0, dx, dy) = cam.affine_direction().unwrap();
+            for &(x, y) in &[(0.5, 0.5), (31.7, 12.25), (63.9, 35.1), (-3.0, 40.0)] {
+                let d = (d0 + dx * x + dy * y).normalize();
+                assert!((d - cam.direction(x, y)).length() < 1e-14, "{fit:?}: ({x}, {y})");
+            }
+        }
+    }
     #[test]
     fn horizontal_field_of_view_is_blenders() {
         // 36 mm sensor, 50 mm lens: horizontal FOV 2·atan(18/50) = 39.5978°.

@@ -2616,7 +2616,7 @@ fn render_channels<const C: usize, const K: usize>(
                 .enumerate()
                 .map(|(k, p)| {
                     let servable = !matches!(casters.get(k), Some(smooth::Casters::Any) | None);
-                    profile::BeamLight::new(&p.light, p.casts_shadows, servable)
+                    profile::BeamLight::new(&p.light, &cam, p.casts_shadows, servable)
                 })
                 .collect()
         } else {
@@ -2627,14 +2627,8 @@ fn render_channels<const C: usize, const K: usize>(
             for &i in &edges {
                 flagged[i] = true;
             }
-            let thin: Vec<usize> = (0..n)
-                .into_par_iter()
-                .filter(|&i| {
-                    let (x, y) = (i % w, i / w);
-                    // (Unlit tiles included: a window reaches 1.5 px beyond its tile.)
-                    !flagged[i] && profile::thin_beam_touches(&beams, &cam, filter.radius(), x, y)
-                })
-                .collect();
+            // (Unlit tiles included: a window reaches 1.5 px beyond its tile.)
+            let thin = profile::thin_beam_pixels(&beams, filter.radius(), w, h, &flagged);
             if !thin.is_empty() {
                 for &i in &thin {
                     flagged[i] = true;

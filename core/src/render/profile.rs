@@ -71,7 +71,7 @@
 //! **Beams narrower than 2 px** ([`serve_thin`]): the centre samples can
 //! miss such a beam altogether (a 0.5° spot, any spot near its apex), so
 //! every pixel whose window it crosses is flagged by geometry alone
-//! ([`thin_beam_touches`]), and integrated in the beam's own coordinates:
+//! ([`thin_beam_pixels`]), and integrated in the beam's own coordinates:
 //! along the centre line `ψ = 0` by the trapezoid rule (7 nodes, every
 //! other one for the estimate), across it over `δ = b sin θ` (Gauss–
 //! Legendre 16 against 8), with `G` quadratic through three exact rays per
@@ -252,27 +252,129 @@ pub(crate) struct BeamLight {
     light_path_extinction: bool,
     /// `None` where the light cannot be served.
     table: Option<ProfileTable>,
+    /// The ray planes' normals across the image (a perspective camera).
+    image: Option<ImagePlanes>,
+}
+
+/// The normal `m = (C − L) × D(p)` of the plane through the light `L` and
+/// the camera's ray through image point `p` (`C` the eye, `D` the ray's
+/// unnormalised direction, affine in `p`): `m = m₀ + x·mₓ + y·m_y`, so
+/// `sin ψ = m·a/|m|` has an affine numerator and a denominator that is the
+/// norm of an affine map (convex in `p`). The ray's start on it does not
+/// matter: `(C + t·d − L) × d = (C − L) × d`.
+#[derive(Clone, Copy)]
+struct ImagePlanes {
+    m0: DVec3,
+    mx: DVec3,
+    my: DVec3,
+    /// `∇(m·a)`, per px: constant.
+    n_grad: [f64; 2],
 }
 
 impl BeamLight {
     /// `servable`: whether the model can serve its beam at all (false for a
     /// light whose casters may shadow any chord, [`Casters::Any`]: it is then
     /// only another light's cone to keep clear of, and builds no table).
-    pub(crate) fn new<const C: usize>(light: &PointSource<C>, casts_shadows: bool, servable: bool) -> BeamLight {
+    pub(crate) fn new<const C: usize>(light: &PointSource<C>, cam: &CameraRays, casts_shadows: bool, servable: bool) -> BeamLight {
+        let axis = light.frame.axis;
+        let image = cam.affine_direction().map(|(d0, dx, dy)| {
+            let w = cam.position - light.position;
+            let (m0, mx, my) = (w.cross(d0), w.cross(dx), w.cross(dy));
+            ImagePlanes {
+                m0,
+                mx,
+                my,
+                n_grad: [mx.dot(axis), my.dot(axis)],
+            }
+        });
         BeamLight {
             position: light.position,
-            axis: light.frame.axis,
+            axis,
             sin_reach: (1.0 - light.cos_reach * light.cos_reach).max(0.0).sqrt(),
             light_path_extinction: casts_shadows,
             table: servable.then(|| ProfileTable::new(light)),
+            image,
         }
     }
 
     /// `±sin ψ` of the camera's ray through image point `(px, py)`.
     #[inline]
     fn sin_psi_at(&self, cam: &CameraRays, px: f64, py: f64) -> f64 {
-        let d = cam.direction(px, py);
-        self.plane_of(cam.position + d * cam.start_distance(d), d).0
+        match &self.image {
+            Some(f) => {
+                let m = f.m0 + f.mx * px + f.my * py;
+                m.dot(self.axis) / m.length()
+            }
+            None => {
+                let d = cam.direction(px, py);
+                self.plane_of(cam.position + d * cam.start_distance(d), d).0
+            }
+        }
+    }
+
+    /// `±sin ψ` at image point `q` and its gradient, per px: exact from the
+    /// ray planes, or by central differences over 1/64 px without them.
+    fn s_and_gradient(&self, cam: &CameraRays, q: [f64; 2]) -> (f64, [f64; 2]) {
+        match &self.image {
+            Some(f) => {
+                let m = f.m0 + f.mx * q[0] + f.my * q[1];
+                let len = m.length();
+                let s = m.dot(self.axis) / len;
+                // ∇(n/|m|) = ∇n/|m| − n·(m·∇m)/|m|³.
+                let g = [
+                    (f.n_grad[0] - s * m.dot(f.mx) / len) / len,
+                    (f.n_grad[1] - s * m.dot(f.my) / len) / len,
+                ];
+                (s, g)
+            }
+            None => {
+                let at = |px: f64, py: f64| self.sin_psi_at(cam, px, py);
+                let e = 1.0 / 64.0;
+                let g = [
+                    (at(q[0] + e, q[1]) - at(q[0] - e, q[1])) / (2.0 * e),
+                    (at(q[0], q[1] + e) - at(q[0], q[1] - e)) / (2.0 * e),
+                ];
+                (at(q[0], q[1]), g)
+            }
+        }
+    }
+
+    /// Whether the cone's band `|sin ψ| < sin_reach` may reach the square
+    /// `c ± half` px of the image: conservative and exact in its bounds
+    /// (no linearisation). Over the square the affine numerator's least
+    /// magnitude is at least `|n(c)| − (|∂ₓn| + |∂_y n|)·half`, and the
+    /// denominator is at most `|m(c)| + (|mₓ| + |m_y|)·half` (triangle
+    /// inequality); the band misses the square when the first exceeds
+    /// `sin_reach` times the second. True without ray planes.
+    fn band_may_touch(&self, c: [f64; 2], half: f64) -> bool {
+        let Some(f) = &self.image else { return true };
+        let m = f.m0 + f.mx * c[0] + f.my * c[1];
+        let n_min = (m.dot(self.axis).abs() - (f.n_grad[0].abs() + f.n_grad[1].abs()) * half).max(0.0);
+        let den_max = m.length() + (f.mx.length() + f.my.length()) * half;
+        // A NaN anywhere makes it incomparable: the band may touch.
+        let bound = (self.sin_reach * (1.0 + 1e-9) + 1e-12) * den_max;
+        n_min.partial_cmp(&bound) != Some(std::cmp::Ordering::Greater)
+    }
+
+    /// The beam's full width across the image at `c`, px: `2·sin_reach`
+    /// over the gradient of `sin ψ` where `sin ψ = 0`, i.e. `|∇n|/|m|`.
+    /// NaN without ray planes.
+    fn width_px_at(&self, c: [f64; 2]) -> f64 {
+        let Some(f) = &self.image else { return f64::NAN };
+        let m = f.m0 + f.mx * c[0] + f.my * c[1];
+        2.0 * self.sin_reach * m.length() / f.n_grad[0].hypot(f.n_grad[1])
+    }
+
+    /// Whether this light's beam, where narrower than [`THIN_BEAM_PX`],
+    /// crosses the window (`c ± radius`) of the pixel centred at `c`: its
+    /// centre samples may all miss it, so the pixel needs the filter
+    /// integral although its samples are flat. Conservative: true where it
+    /// cannot tell.
+    fn thin_beam_touches(&self, c: [f64; 2], radius: f64) -> bool {
+        let width = self.width_px_at(c);
+        // NaN (no ray planes, a ray through the light) counts as thin; a
+        // beam edge-on to the image (zero gradient: all or nothing) as wide.
+        (width.is_nan() || width < THIN_BEAM_PX) && self.band_may_touch(c, radius)
     }
 
     /// `(±sin ψ, h, m)` of the ray from `o` along unit `d`: `m = (o − L) × d`,
@@ -1033,53 +1135,31 @@ fn window_norm(filter: &PixelFilter) -> f64 {
     one * one
 }
 
-/// `±sin ψ` of light `light` for the ray through image point `q`, and its
-/// gradient, per px (central differences over 1/64 px).
-fn s_and_gradient<const C: usize>(input: &ProfileInput<'_, C>, light: &BeamLight, q: [f64; 2]) -> (f64, [f64; 2]) {
-    let at = |px: f64, py: f64| light.sin_psi_at(input.cam, px, py);
-    let e = 1.0 / 64.0;
-    let g = [
-        (at(q[0] + e, q[1]) - at(q[0] - e, q[1])) / (2.0 * e),
-        (at(q[0], q[1] + e) - at(q[0], q[1] - e)) / (2.0 * e),
-    ];
-    (at(q[0], q[1]), g)
-}
-
 /// Whether light `j`'s cone may come within `reach` px (along x or y) of
-/// image point `c`: its band `|sin ψ| < sin_reach` with `sin ψ` linearised
-/// at `c`, its half-width and twice the reach for the linearisation's error.
+/// image point `c` ([`BeamLight::band_may_touch`]).
 fn cone_within<const C: usize>(input: &ProfileInput<'_, C>, j: usize, c: [f64; 2], reach: f64) -> bool {
-    let light = &input.lights[j];
-    let (s, g) = s_and_gradient(input, light, c);
-    let gn = g[0].hypot(g[1]);
-    if !(gn.is_finite() && s.is_finite()) {
-        return true;
-    }
-    s.abs() <= light.sin_reach + 2.0 * reach * std::f64::consts::SQRT_2 * gn
+    input.lights[j].band_may_touch(c, reach)
 }
 
 /// The widest beam the thin path takes, px across: the narrowest the main
 /// path takes ([`MIN_BEAM_NODES`] node spacings).
 const THIN_BEAM_PX: f64 = MIN_BEAM_NODES / NODES_PER_PX as f64;
 
-/// Whether a beam narrower than [`MIN_BEAM_NODES`] node spacings crosses
-/// the window of pixel `(x, y)`: its centre samples may all miss it, so the
-/// pixel needs the filter integral although its samples are flat.
-pub(crate) fn thin_beam_touches(lights: &[BeamLight], cam: &CameraRays, radius: f64, x: usize, y: usize) -> bool {
-    let c = [x as f64 + 0.5, y as f64 + 0.5];
-    let e = 1.0 / 64.0;
-    lights.iter().any(|light| {
-        let at = |px: f64, py: f64| light.sin_psi_at(cam, px, py);
-        let s0 = at(c[0], c[1]);
-        let g = (at(c[0] + e, c[1]) - s0) / e;
-        let gy = (at(c[0], c[1] + e) - s0) / e;
-        let gn = g.hypot(gy);
-        if !(gn.is_finite() && s0.is_finite()) {
-            return true;
-        }
-        let b = light.sin_reach / gn;
-        2.0 * b < MIN_BEAM_NODES / NODES_PER_PX as f64 && s0.abs() / gn <= radius * std::f64::consts::SQRT_2 + b
-    })
+/// The pixels, not yet `flagged`, whose window (`± radius` px) a beam
+/// narrower than [`THIN_BEAM_PX`] crosses ([`BeamLight::thin_beam_touches`]),
+/// in index order.
+pub(crate) fn thin_beam_pixels(lights: &[BeamLight], radius: f64, width: usize, height: usize, flagged: &[bool]) -> Vec<usize> {
+    (0..height)
+        .into_par_iter()
+        .flat_map_iter(|y| {
+            (0..width)
+                .filter(move |&x| {
+                    let c = [x as f64 + 0.5, y as f64 + 0.5];
+                    !flagged[y * width + x] && lights.iter().any(|l| l.thin_beam_touches(c, radius))
+                })
+                .map(move |x| y * width + x)
+        })
+        .collect()
 }
 
 /// Gauss–Legendre nodes and weights on [−1, 1], 4, 8 and 16 points.
@@ -1136,7 +1216,7 @@ fn serve_thin<const C: usize>(input: &ProfileInput<'_, C>, k: usize, i: usize, n
     let table = light.table.as_ref()?;
     let r = input.filter.radius();
     let c = [x as f64 + 0.5, y as f64 + 0.5];
-    let (s0, g) = s_and_gradient(input, light, c);
+    let (s0, g) = light.s_and_gradient(input.cam, c);
     let gn = g[0].hypot(g[1]);
     if !(gn > 0.0 && gn.is_finite() && s0.is_finite()) {
         return None;
@@ -1216,7 +1296,7 @@ fn serve_thin<const C: usize>(input: &ProfileInput<'_, C>, k: usize, i: usize, n
         let start = q;
         let mut gq = g;
         for _ in 0..3 {
-            let (sq, gg) = s_and_gradient(input, light, q);
+            let (sq, gg) = light.s_and_gradient(input.cam, q);
             let n2 = gg[0] * gg[0] + gg[1] * gg[1];
             if n2.is_nan() || n2 <= 0.0 {
                 return None;
