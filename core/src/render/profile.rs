@@ -167,13 +167,17 @@ impl ProfileTable {
             2.0 * total
         };
         let s_of = |q: f64| s_max * (1.0 - q * q);
-        let values: Vec<f64> = (0..=TABLE_CELLS).map(|i| abel(s_of(i as f64 / TABLE_CELLS as f64))).collect();
+        let values: Vec<f64> = (0..=TABLE_CELLS)
+            .into_par_iter()
+            .map(|i| abel(s_of(i as f64 / TABLE_CELLS as f64)))
+            .collect();
         let error = (0..TABLE_CELLS)
+            .into_par_iter()
             .map(|i| {
                 let mid = abel(s_of((i as f64 + 0.5) / TABLE_CELLS as f64));
                 (mid - 0.5 * (values[i] + values[i + 1])).abs()
             })
-            .fold(0.0f64, f64::max);
+            .reduce(|| 0.0f64, f64::max);
         ProfileTable {
             s_max,
             cos_reach,
@@ -269,6 +273,10 @@ struct ImagePlanes {
     my: DVec3,
     /// `∇(m·a)`, per px: constant.
     n_grad: [f64; 2],
+    /// `|∇(m·a)|`, `|mₓ|`, `|m_y|`.
+    n_grad_norm: f64,
+    mx_len: f64,
+    my_len: f64,
 }
 
 impl BeamLight {
@@ -280,11 +288,15 @@ impl BeamLight {
         let image = cam.affine_direction().map(|(d0, dx, dy)| {
             let w = cam.position - light.position;
             let (m0, mx, my) = (w.cross(d0), w.cross(dx), w.cross(dy));
+            let n_grad = [mx.dot(axis), my.dot(axis)];
             ImagePlanes {
                 m0,
                 mx,
                 my,
-                n_grad: [mx.dot(axis), my.dot(axis)],
+                n_grad,
+                n_grad_norm: n_grad[0].hypot(n_grad[1]),
+                mx_len: mx.length(),
+                my_len: my.length(),
             }
         });
         BeamLight {
@@ -340,17 +352,23 @@ impl BeamLight {
     }
 
     /// Whether the cone's band `|sin ψ| < sin_reach` may reach the square
-    /// `c ± half` px of the image: conservative and exact in its bounds
-    /// (no linearisation). Over the square the affine numerator's least
-    /// magnitude is at least `|n(c)| − (|∂ₓn| + |∂_y n|)·half`, and the
-    /// denominator is at most `|m(c)| + (|mₓ| + |m_y|)·half` (triangle
-    /// inequality); the band misses the square when the first exceeds
-    /// `sin_reach` times the second. True without ray planes.
+    /// `c ± half` px of the image ([`Self::band_may_touch_rect`]).
     fn band_may_touch(&self, c: [f64; 2], half: f64) -> bool {
+        self.band_may_touch_rect(c, [half, half])
+    }
+
+    /// Whether the cone's band `|sin ψ| < sin_reach` may reach the
+    /// rectangle `c ± half` px of the image: conservative and exact in its
+    /// bounds (no linearisation). Over the rectangle the affine numerator's
+    /// least magnitude is at least `|n(c)| − |∂ₓn|·half₀ − |∂_y n|·half₁`,
+    /// and the denominator is at most `|m(c)| + |mₓ|·half₀ + |m_y|·half₁`
+    /// (triangle inequality); the band misses the rectangle when the first
+    /// exceeds `sin_reach` times the second. True without ray planes.
+    fn band_may_touch_rect(&self, c: [f64; 2], half: [f64; 2]) -> bool {
         let Some(f) = &self.image else { return true };
         let m = f.m0 + f.mx * c[0] + f.my * c[1];
-        let n_min = (m.dot(self.axis).abs() - (f.n_grad[0].abs() + f.n_grad[1].abs()) * half).max(0.0);
-        let den_max = m.length() + (f.mx.length() + f.my.length()) * half;
+        let n_min = (m.dot(self.axis).abs() - f.n_grad[0].abs() * half[0] - f.n_grad[1].abs() * half[1]).max(0.0);
+        let den_max = m.length() + f.mx_len * half[0] + f.my_len * half[1];
         // A NaN anywhere makes it incomparable: the band may touch.
         let bound = (self.sin_reach * (1.0 + 1e-9) + 1e-12) * den_max;
         n_min.partial_cmp(&bound) != Some(std::cmp::Ordering::Greater)
@@ -362,7 +380,7 @@ impl BeamLight {
     fn width_px_at(&self, c: [f64; 2]) -> f64 {
         let Some(f) = &self.image else { return f64::NAN };
         let m = f.m0 + f.mx * c[0] + f.my * c[1];
-        2.0 * self.sin_reach * m.length() / f.n_grad[0].hypot(f.n_grad[1])
+        2.0 * self.sin_reach * m.length() / f.n_grad_norm
     }
 
     /// Whether this light's beam, where narrower than [`THIN_BEAM_PX`],
@@ -1147,19 +1165,35 @@ const THIN_BEAM_PX: f64 = MIN_BEAM_NODES / NODES_PER_PX as f64;
 
 /// The pixels, not yet `flagged`, whose window (`± radius` px) a beam
 /// narrower than [`THIN_BEAM_PX`] crosses ([`BeamLight::thin_beam_touches`]),
-/// in index order.
+/// in index order. Blocks of [`TILE`] px a side whose windows no light's
+/// band may reach ([`BeamLight::band_may_touch_rect`]) are skipped whole.
 pub(crate) fn thin_beam_pixels(lights: &[BeamLight], radius: f64, width: usize, height: usize, flagged: &[bool]) -> Vec<usize> {
-    (0..height)
+    let blocks_x = width.div_ceil(TILE);
+    let mut out: Vec<usize> = (0..blocks_x * height.div_ceil(TILE))
         .into_par_iter()
-        .flat_map_iter(|y| {
-            (0..width)
-                .filter(move |&x| {
-                    let c = [x as f64 + 0.5, y as f64 + 0.5];
-                    !flagged[y * width + x] && lights.iter().any(|l| l.thin_beam_touches(c, radius))
-                })
-                .map(move |x| y * width + x)
+        .flat_map_iter(|b| {
+            let (x0, y0) = ((b % blocks_x) * TILE, (b / blocks_x) * TILE);
+            let (x1, y1) = ((x0 + TILE).min(width), (y0 + TILE).min(height));
+            // The block's pixel centres' span, widened by the window.
+            let c = [0.5 * (x0 + x1) as f64, 0.5 * (y0 + y1) as f64];
+            let half = [0.5 * (x1 - x0) as f64 + radius, 0.5 * (y1 - y0) as f64 + radius];
+            let near: Vec<&BeamLight> = lights.iter().filter(|l| l.band_may_touch_rect(c, half)).collect();
+            let mut found = Vec::new();
+            if !near.is_empty() {
+                for y in y0..y1 {
+                    for x in x0..x1 {
+                        let c = [x as f64 + 0.5, y as f64 + 0.5];
+                        if !flagged[y * width + x] && near.iter().any(|l| l.thin_beam_touches(c, radius)) {
+                            found.push(y * width + x);
+                        }
+                    }
+                }
+            }
+            found
         })
-        .collect()
+        .collect();
+    out.sort_unstable();
+    out
 }
 
 /// Gauss–Legendre nodes and weights on [−1, 1], 4, 8 and 16 points.
