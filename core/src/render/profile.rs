@@ -324,6 +324,17 @@ impl BeamLight {
         }
     }
 
+    /// Whether the camera's ray through image point `(px, py)` certainly
+    /// misses the cone (its plane does, with the margin of [`chord`]'s test
+    /// of other lights' cones): false without ray planes.
+    #[inline]
+    fn clear_of_cone_at(&self, px: f64, py: f64) -> bool {
+        let Some(f) = &self.image else { return false };
+        let m = f.m0 + f.mx * px + f.my * py;
+        let len = m.length();
+        len > 0.0 && (m.dot(self.axis) / len).abs() > self.sin_reach * (1.0 + 1e-9) + 1e-12
+    }
+
     /// `±sin ψ` at image point `q` and its gradient, per px: exact from the
     /// ray planes, or by central differences over 1/64 px without them.
     fn s_and_gradient(&self, cam: &CameraRays, q: [f64; 2]) -> (f64, [f64; 2]) {
@@ -940,6 +951,15 @@ fn node_value<const C: usize>(
     py: f64,
 ) -> Option<NodeValue> {
     let table = light.table.as_ref()?;
+    // A ray outside every cone has no in-scatter, whichever surface it ends
+    // on: no chord to find (the nodes outside a beam beside its edge).
+    if input.lights.iter().all(|l| l.clear_of_cone_at(px, py)) {
+        return Some(NodeValue {
+            value: [0.0; 3],
+            error: [0.0; 3],
+            g_max: 0.0,
+        });
+    }
     let at = |cx: usize, cy: usize| &centres[(cy - region.cy0) * region.cw + (cx - region.cx0)];
     let (gx, gy) = (px - 0.5, py - 0.5);
     let (fx, fy) = (gx.floor(), gy.floor());
