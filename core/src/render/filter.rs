@@ -105,8 +105,10 @@ impl PixelFilter {
                     return 0.0;
                 }
                 let [a0, a1, a2, a3] = BLACKMAN_HARRIS;
-                let a = 2.0 * PI * (x / (2.0 * width_px) + 0.5);
-                a0 - a1 * a.cos() + a2 * (2.0 * a).cos() - a3 * (3.0 * a).cos()
+                // cos 2a and cos 3a from cos a (Chebyshev): one cosine per weight.
+                let c = (2.0 * PI * (x / (2.0 * width_px) + 0.5)).cos();
+                let c2 = 2.0 * c * c - 1.0;
+                a0 - a1 * c + a2 * c2 - a3 * c * (2.0 * c2 - 1.0)
             }
             PixelFilter::None => {
                 if x == 0.0 {

@@ -71,13 +71,15 @@
 //! **Beams narrower than 2 px** ([`serve_thin`]): the centre samples can
 //! miss such a beam altogether (a 0.5° spot, any spot near its apex), so
 //! every pixel whose window it crosses is flagged by geometry alone
-//! ([`thin_beam_pixels`]), and integrated in the beam's own coordinates:
-//! along the centre line `ψ = 0` by the trapezoid rule (7 nodes, every
-//! other one for the estimate), across it over `δ = b sin θ` (Gauss–
-//! Legendre 16 against 8), with `G` quadratic through three exact rays per
-//! node and the quadratic's departure from a line charged as its error.
-//! Before this, such beams were left out of the filter: a 0.5° beam 30 m
-//! away rendered 19 % relative RMSE with estimates of 0.
+//! ([`thin_beam_pixels`]), and integrated in the beam's own coordinates,
+//! a rotation of the image's: along its centre line (`ψ = 0`, a straight
+//! line in the image) by the trapezoid rule on nodes ¼ px apart that every
+//! pixel along the beam shares (every other one for the estimate), across
+//! it between the band's exact edges (Gauss–Legendre 16 against 8), with
+//! `G` quadratic through three exact rays per node and the quadratic's
+//! departure from a line charged as its error. Before this, such beams
+//! were left out of the filter: a 0.5° beam 30 m away rendered 19 %
+//! relative RMSE with estimates of 0.
 //!
 //! Only for scenes whose in-scatter all comes from Blender spot lamps
 //! (smooth between their kinks, no IES, cones narrower than a hemisphere)
@@ -335,6 +337,45 @@ impl BeamLight {
         len > 0.0 && (m.dot(self.axis) / len).abs() > self.sin_reach * (1.0 + 1e-9) + 1e-12
     }
 
+    /// The beam's centre line in the image, `n(p) = m(p)·a = 0` (straight:
+    /// `n` is affine): its point nearest `c` and its unit direction
+    /// (`∇n` turned by +90°). `None` without ray planes or where `∇n = 0`.
+    fn centre_line(&self, c: [f64; 2]) -> Option<([f64; 2], [f64; 2])> {
+        let f = self.image.as_ref()?;
+        let gn = f.n_grad_norm;
+        if !(gn > 0.0 && gn.is_finite()) {
+            return None;
+        }
+        let n = (f.m0 + f.mx * c[0] + f.my * c[1]).dot(self.axis);
+        let (gx, gy) = (f.n_grad[0] / gn, f.n_grad[1] / gn);
+        Some(([c[0] - n / gn * gx, c[1] - n / gn * gy], [-gy, gx]))
+    }
+
+    /// Where the band `|sin ψ| < sin_reach` crosses the image line
+    /// `q + δ·normal` (unit `normal`): `(δ₋, δ₊)`, exactly. Along it
+    /// `n = n_q + δ·∂n` and `m = m_q + δ·w` are affine, and `n² <
+    /// sin²·|m|²` is a quadratic inequality in `δ`. `None` where it does
+    /// not hold between two roots around `δ = 0`.
+    fn band_across(&self, q: [f64; 2], normal: [f64; 2]) -> Option<(f64, f64)> {
+        let f = self.image.as_ref()?;
+        let mq = f.m0 + f.mx * q[0] + f.my * q[1];
+        let w = f.mx * normal[0] + f.my * normal[1];
+        let (nq, dn) = (mq.dot(self.axis), f.n_grad[0] * normal[0] + f.n_grad[1] * normal[1]);
+        let s2 = self.sin_reach * self.sin_reach;
+        let a = dn * dn - s2 * w.length_squared();
+        let b = 2.0 * (nq * dn - s2 * mq.dot(w));
+        let c = nq * nq - s2 * mq.length_squared();
+        let disc = b * b - 4.0 * a * c;
+        if !(a > 0.0 && c < 0.0 && disc > 0.0) {
+            return None;
+        }
+        // Stable roots (c < 0 < a: one of each sign).
+        let t = -0.5 * (b + b.signum() * disc.sqrt());
+        let (r1, r2) = (t / a, c / t);
+        let (lo, hi) = (r1.min(r2), r1.max(r2));
+        (lo.is_finite() && hi.is_finite()).then_some((lo, hi))
+    }
+
     /// `±sin ψ` at image point `q` and its gradient, per px: exact from the
     /// ray planes, or by central differences over 1/64 px without them.
     fn s_and_gradient(&self, cam: &CameraRays, q: [f64; 2]) -> (f64, [f64; 2]) {
@@ -514,10 +555,7 @@ pub(crate) fn filter_by_profile<const C: usize>(input: &ProfileInput<'_, C>, can
     };
     // Beams thinner than a node spacing: along their centre line, one ray per node.
     let norm = window_norm(&input.filter);
-    let thin: Vec<Option<ProfilePixel>> = candidates
-        .par_iter()
-        .map(|&i| (0..input.lights.len()).find_map(|k| serve_thin(input, k, i, norm)))
-        .collect();
+    let thin = serve_thin_all(input, candidates, norm);
     let mut served: Vec<ProfilePixel> = Vec::new();
     let mut open: Vec<usize> = Vec::new();
     for (p, &i) in thin.into_iter().zip(candidates) {
@@ -1257,19 +1295,46 @@ const GL16: [(f64, f64); 16] = [
 /// A beam narrower than [`THIN_BEAM_PX`] across the window of pixel `i`:
 /// too few nodes across it for the main path, too few centre samples
 /// inside it for `G`. The window integral is taken in the beam's own
-/// coordinates: along its centre line `s = 0` by the trapezoid rule on 7
-/// interior nodes (the window is 0 at both ends, so the rule converges
-/// fast; every other node gives the estimate), and across it, at each
-/// node, over `δ = b·sin θ` (Gauss–Legendre in θ, 16 nodes against 8; the
-/// substitution smooths a hard edge's square root). Across, `L = G(δ)·A(s)`
-/// with `A` and `s` exact (geometry) and `G` the quadratic through three
-/// exact rays at `δ = 0, ±b/2`; the quadratic's departure from the line
-/// through them is charged as that model's error.
-fn serve_thin<const C: usize>(input: &ProfileInput<'_, C>, k: usize, i: usize, norm: f64) -> Option<ProfilePixel> {
+/// coordinates, a rotation of the image's: along its centre line (exact:
+/// `n = m·a = 0` is a straight line in the image) by the trapezoid rule
+/// on nodes ¼ px apart (the window is 0 at both ends of its span, so the
+/// rule converges fast; every other node gives the estimate), and across
+/// it, at each node, over the band `|sin ψ| < sin_reach` between its exact
+/// edges `δ₋, δ₊` ([`BeamLight::band_across`]), as `δ = mid + half·sin θ`
+/// (Gauss–Legendre in θ, 16 nodes against 8; the substitution smooths a
+/// hard edge's square root). Across, `L = G(δ)·A(s)` with `A` and `s`
+/// exact (geometry) and `G` the quadratic through three exact rays at
+/// `δ = mid, mid ± half/2`; the quadratic's departure from the line
+/// through them is charged as that model's error. The nodes lie on one
+/// line per light, so every pixel along the beam shares them
+/// ([`thin_nodes`]): three traced rays per node, not per pixel.
+struct ThinPlan {
+    i: usize,
+    k: usize,
+    c: [f64; 2],
+    /// The band's half-width at the pixel's centre, px.
+    b: f64,
+    /// The line's nodes whose band may touch the window: `j0..=j1`.
+    j0: i64,
+    j1: i64,
+}
+
+/// Node spacing along a thin beam's centre line, px.
+const THIN_NODE_PX: f64 = 1.0 / NODES_PER_PX as f64;
+
+/// One light's centre line: the point nearest the frame's centre and the
+/// unit direction; node `j` is at `foot + j·THIN_NODE_PX·dir`.
+fn thin_line<const C: usize>(input: &ProfileInput<'_, C>, k: usize) -> Option<([f64; 2], [f64; 2])> {
+    input.lights[k].centre_line([0.5 * input.width as f64, 0.5 * input.height as f64])
+}
+
+/// Whether the thin path may take pixel `i` for light `k`, and which of
+/// the line's nodes its window needs.
+fn thin_plan<const C: usize>(input: &ProfileInput<'_, C>, k: usize, i: usize) -> Option<ThinPlan> {
     let w = input.width;
     let (x, y) = (i % w, i / w);
     let light = &input.lights[k];
-    let table = light.table.as_ref()?;
+    light.table.as_ref()?;
     let r = input.filter.radius();
     let c = [x as f64 + 0.5, y as f64 + 0.5];
     let (s0, g) = light.s_and_gradient(input.cam, c);
@@ -1295,8 +1360,7 @@ fn serve_thin<const C: usize>(input: &ProfileInput<'_, C>, k: usize, i: usize, n
     }
     // The centre line, clipped to the window's square widened by 2b: beyond
     // that the whole band is outside the window.
-    let foot = [c[0] - s0 * g[0] / (gn * gn), c[1] - s0 * g[1] / (gn * gn)];
-    let dir = [-g[1] / gn, g[0] / gn];
+    let (foot, dir) = thin_line(input, k)?;
     let reach = r + 2.0 * b;
     let (mut ta, mut tb) = (f64::NEG_INFINITY, f64::INFINITY);
     for a in 0..2 {
@@ -1313,29 +1377,57 @@ fn serve_thin<const C: usize>(input: &ProfileInput<'_, C>, k: usize, i: usize, n
     if tb.is_nan() || ta.is_nan() || tb <= ta {
         return None;
     }
+    let (j0, j1) = ((ta / THIN_NODE_PX).ceil() as i64, (tb / THIN_NODE_PX).floor() as i64);
+    (j1 > j0 + 2).then_some(ThinPlan { i, k, c, b, j0, j1 })
+}
+
+/// A node on a thin beam's centre line: what every window holding it needs.
+struct ThinNode {
+    /// The surface's plane group the three exact rays end on.
+    group: u32,
+    /// The exact rays' largest own relative error.
+    own: f64,
+    /// Half the band's width across, px.
+    half: f64,
+    /// The band's ends across the line, image points.
+    ends: [[f64; 2]; 2],
+    /// `G` at `δ = mid, mid + half/2, mid − half/2`, RGB.
+    g: [[f64; 3]; 3],
+    /// Gauss–Legendre points across (16, then 8): image point, weight
+    /// times `A` (without the window), and `z = (δ − mid)/(half/2)`.
+    points: Vec<([f64; 2], f64, f64)>,
+}
+
+/// Node `j` of light `k`'s centre line, or `None` where the model does
+/// not hold there (an exact ray off the beam's core or its surface, a chord
+/// cut by a surface, the band not closed around the line).
+fn thin_node<const C: usize>(input: &ProfileInput<'_, C>, k: usize, j: i64) -> Option<ThinNode> {
+    let light = &input.lights[k];
+    let table = light.table.as_ref()?;
     let cam = input.cam;
-    let window = |p: [f64; 2]| input.filter.weight(p[0] - c[0]) * input.filter.weight(p[1] - c[1]);
+    let (foot, dir) = thin_line(input, k)?;
+    let normal = [dir[1], -dir[0]];
+    let t = j as f64 * THIN_NODE_PX;
+    let q = [foot[0] + t * dir[0], foot[1] + t * dir[1]];
+    let (lo, hi) = light.band_across(q, normal)?;
+    let (mid, half) = (0.5 * (lo + hi), 0.5 * (hi - lo));
+    if half.is_nan() || half <= 0.0 || 2.0 * half >= THIN_BEAM_PX {
+        return None;
+    }
+    let at = |delta: f64| [q[0] + delta * normal[0], q[1] + delta * normal[1]];
     let s_at = |p: [f64; 2]| light.sin_psi_at(cam, p[0], p[1]);
-    // One exact ray: `G = L/A` there, its own relative error.
-    let seen: std::cell::Cell<Option<u32>> = std::cell::Cell::new(None);
-    let g_at = |p: [f64; 2]| -> Option<([f64; 3], f64)> {
+    // One exact ray: `G = L/A` there, its surface and own relative error.
+    let g_at = |p: [f64; 2]| -> Option<([f64; 3], u32, f64)> {
         let a = table.eval(s_at(p).abs());
         if a.is_nan() || a < KNOWN_FRACTION * table.peak {
             return None;
         }
         let tr = (input.trace)(p[0], p[1]);
-        // Every exact ray on one surface (or none): a narrow object in
-        // front would cut the chord between them.
         let group = if tr.surface == 0 {
             0
         } else {
             input.planes.group_of(tr.surface - 1)
         };
-        match seen.get() {
-            None => seen.set(Some(group)),
-            Some(g) if g != group => return None,
-            _ => {}
-        }
         let d = cam.direction(p[0], p[1]);
         let whole = chord(input, k, cam.position + d * cam.start_distance(d), d, tr.t_end, false)?;
         if whole.a == 0.0 {
@@ -1343,54 +1435,94 @@ fn serve_thin<const C: usize>(input: &ProfileInput<'_, C>, k: usize, i: usize, n
         }
         let largest = tr.inscatter.iter().fold(0.0f64, |m, v| m.max(v.abs()));
         let own = tr.error.iter().fold(0.0f64, |m, v| m.max(*v));
-        Some((tr.inscatter.map(|l| l / a), if largest > 0.0 { own / largest } else { 0.0 }))
+        Some((tr.inscatter.map(|l| l / a), group, if largest > 0.0 { own / largest } else { 0.0 }))
     };
-    // At the line's node t: (value, across-rule difference, G-model term), per channel, and the own error.
-    type Across = ([f64; 3], [f64; 3], [f64; 3], f64);
-    let node = |t: f64| -> Option<Across> {
-        let mut q = [foot[0] + t * dir[0], foot[1] + t * dir[1]];
-        let start = q;
-        let mut gq = g;
-        for _ in 0..3 {
-            let (sq, gg) = light.s_and_gradient(input.cam, q);
-            let n2 = gg[0] * gg[0] + gg[1] * gg[1];
-            if n2.is_nan() || n2 <= 0.0 {
-                return None;
-            }
-            q = [q[0] - sq * gg[0] / n2, q[1] - sq * gg[1] / n2];
-            gq = gg;
-        }
-        // The line must stay nearly straight across the window, and the
-        // band within the widened square.
-        let gqn = gq[0].hypot(gq[1]);
-        let bq = light.sin_reach / gqn;
-        if (q[0] - start[0]).hypot(q[1] - start[1]) > 0.05 || bq > 1.5 * b || 2.0 * bq >= THIN_BEAM_PX {
+    let (g0, s0, e0) = g_at(at(mid))?;
+    let (gp, sp, ep) = g_at(at(mid + 0.5 * half))?;
+    let (gm, sm, em) = g_at(at(mid - 0.5 * half))?;
+    // Every exact ray on one surface (or none): a narrow object in front
+    // would cut the chord between them.
+    if s0 != sp || s0 != sm {
+        return None;
+    }
+    let points = GL16
+        .iter()
+        .chain(GL8.iter())
+        .map(|&(u, wgt)| {
+            let theta = u * std::f64::consts::FRAC_PI_2;
+            let p = at(mid + half * theta.sin());
+            let f = wgt * std::f64::consts::FRAC_PI_2 * half * theta.cos() * table.eval(s_at(p).abs());
+            (p, f, 2.0 * theta.sin())
+        })
+        .collect();
+    Some(ThinNode {
+        group: s0,
+        own: e0.max(ep).max(em),
+        half,
+        ends: [at(lo), at(hi)],
+        g: [g0, gp, gm],
+        points,
+    })
+}
+
+/// The pixels of `candidates` the thin path serves (aligned with them).
+fn serve_thin_all<const C: usize>(input: &ProfileInput<'_, C>, candidates: &[usize], norm: f64) -> Vec<Option<ProfilePixel>> {
+    let plans: Vec<Option<ThinPlan>> = candidates
+        .par_iter()
+        .map(|&i| (0..input.lights.len()).find_map(|k| thin_plan(input, k, i)))
+        .collect();
+    // The nodes the plans need, per light, each computed once.
+    let mut wanted: Vec<(usize, i64)> = plans.iter().flatten().flat_map(|p| (p.j0..=p.j1).map(move |j| (p.k, j))).collect();
+    wanted.sort_unstable();
+    wanted.dedup();
+    let nodes: Vec<Option<ThinNode>> = wanted.par_iter().map(|&(k, j)| thin_node(input, k, j)).collect();
+    let node_of = |k: usize, j: i64| -> Option<&ThinNode> {
+        let n = wanted.binary_search(&(k, j)).ok()?;
+        nodes[n].as_ref()
+    };
+    plans
+        .par_iter()
+        .map(|plan| {
+            let plan = plan.as_ref()?;
+            serve_thin(input, plan, &node_of, norm)
+        })
+        .collect()
+}
+
+fn serve_thin<'n, const C: usize>(
+    input: &ProfileInput<'_, C>,
+    plan: &ThinPlan,
+    node_of: &dyn Fn(usize, i64) -> Option<&'n ThinNode>,
+    norm: f64,
+) -> Option<ProfilePixel> {
+    let ThinPlan { i, k, c, b, j0, j1 } = *plan;
+    let table = input.lights[k].table.as_ref()?;
+    let window = |p: [f64; 2]| input.filter.weight(p[0] - c[0]) * input.filter.weight(p[1] - c[1]);
+    let h = THIN_NODE_PX;
+    let (mut fine, mut coarse, mut rule, mut model, mut own) = ([0.0f64; 3], [0.0f64; 3], [0.0f64; 3], [0.0f64; 3], 0.0f64);
+    let mut group = None;
+    for j in j0..=j1 {
+        let node = node_of(k, j)?;
+        // The band must not widen much across the window (near the beam's
+        // apex), and every node's rays end on one surface.
+        if node.half > 1.5 * b || *group.get_or_insert(node.group) != node.group {
             return None;
         }
-        let nq = [gq[0] / gqn, gq[1] / gqn];
-        let at = |delta: f64| [q[0] + delta * nq[0], q[1] + delta * nq[1]];
-        // Nothing to integrate where the whole band is outside the window.
-        if window(at(-bq)) == 0.0 && window(q) == 0.0 && window(at(bq)) == 0.0 {
-            let lo = [q[0] - bq, q[1] - bq];
-            let hi = [q[0] + bq, q[1] + bq];
-            if lo[0] > c[0] + r || hi[0] < c[0] - r || lo[1] > c[1] + r || hi[1] < c[1] - r {
-                return Some(([0.0; 3], [0.0; 3], [0.0; 3], 0.0));
-            }
+        own = own.max(node.own);
+        // Nothing to add where the band lies outside the window.
+        let [p, q] = node.ends;
+        let r = input.filter.radius();
+        if p[0].min(q[0]) >= c[0] + r || p[0].max(q[0]) <= c[0] - r || p[1].min(q[1]) >= c[1] + r || p[1].max(q[1]) <= c[1] - r {
+            continue;
         }
-        let (g0, e0) = g_at(q)?;
-        let (gp, ep) = g_at(at(0.5 * bq))?;
-        let (gm, em) = g_at(at(-0.5 * bq))?;
-        let across = |n: &[(f64, f64)]| -> ([f64; 3], [f64; 3]) {
+        let [g0, gp, gm] = node.g;
+        let across = |points: &[([f64; 2], f64, f64)]| -> ([f64; 3], [f64; 3]) {
             let (mut v, mut curv) = ([0.0f64; 3], [0.0f64; 3]);
-            for &(u, wgt) in n {
-                let theta = u * std::f64::consts::FRAC_PI_2;
-                let delta = bq * theta.sin();
-                let p = at(delta);
-                let f = wgt * std::f64::consts::FRAC_PI_2 * bq * theta.cos() * window(p) * table.eval(s_at(p).abs());
+            for &(p, f0, z) in points {
+                let f = f0 * window(p);
                 if f == 0.0 {
                     continue;
                 }
-                let z = delta / (0.5 * bq);
                 for ch in 0..3 {
                     let slope = 0.5 * (gp[ch] - gm[ch]);
                     let bend = 0.5 * (gp[ch] + gm[ch] - 2.0 * g0[ch]);
@@ -1400,24 +1532,15 @@ fn serve_thin<const C: usize>(input: &ProfileInput<'_, C>, k: usize, i: usize, n
             }
             (v, curv)
         };
-        let (v16, curv) = across(&GL16);
-        let (v8, _) = across(&GL8);
-        let diff: [f64; 3] = std::array::from_fn(|ch| (v16[ch] - v8[ch]).abs());
-        Some((v16, diff, curv, e0.max(ep).max(em)))
-    };
-    let intervals = 8;
-    let h = (tb - ta) / intervals as f64;
-    let (mut fine, mut coarse, mut rule, mut model, mut own) = ([0.0f64; 3], [0.0f64; 3], [0.0f64; 3], [0.0f64; 3], 0.0f64);
-    for kk in 1..intervals {
-        let (v, d, m, e) = node(ta + kk as f64 * h)?;
-        own = own.max(e);
+        let (v16, curv) = across(&node.points[..16]);
+        let (v8, _) = across(&node.points[16..]);
         for ch in 0..3 {
-            fine[ch] += h * v[ch];
-            if kk % 2 == 0 {
-                coarse[ch] += 2.0 * h * v[ch];
+            fine[ch] += h * v16[ch];
+            if j.rem_euclid(2) == 0 {
+                coarse[ch] += 2.0 * h * v16[ch];
             }
-            rule[ch] += h * d[ch];
-            model[ch] += h * m[ch];
+            rule[ch] += h * (v16[ch] - v8[ch]).abs();
+            model[ch] += h * curv[ch];
         }
     }
     let table_rel = table.error / (KNOWN_FRACTION * table.peak);
