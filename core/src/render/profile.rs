@@ -68,7 +68,7 @@
 //! in-scatter stays the profile's (so requesting the transmittance layer
 //! does not change the in-scatter).
 //!
-//! **Beams narrower than 2 px** ([`serve_thin`]): the centre samples can
+//! **Beams narrower than 2 px** ([`serve_thin_all`]): the centre samples can
 //! miss such a beam altogether (a 0.5° spot, any spot near its apex), so
 //! every pixel whose window it crosses is flagged by geometry alone
 //! ([`thin_beam_pixels`]), and integrated in the beam's own coordinates,
@@ -1292,22 +1292,8 @@ const GL16: [(f64, f64); 16] = [
     (0.989_400_934_991_649_9, 0.027_152_459_411_754_095),
 ];
 
-/// A beam narrower than [`THIN_BEAM_PX`] across the window of pixel `i`:
-/// too few nodes across it for the main path, too few centre samples
-/// inside it for `G`. The window integral is taken in the beam's own
-/// coordinates, a rotation of the image's: along its centre line (exact:
-/// `n = m·a = 0` is a straight line in the image) by the trapezoid rule
-/// on nodes ¼ px apart (the window is 0 at both ends of its span, so the
-/// rule converges fast; every other node gives the estimate), and across
-/// it, at each node, over the band `|sin ψ| < sin_reach` between its exact
-/// edges `δ₋, δ₊` ([`BeamLight::band_across`]), as `δ = mid + half·sin θ`
-/// (Gauss–Legendre in θ, 16 nodes against 8; the substitution smooths a
-/// hard edge's square root). Across, `L = G(δ)·A(s)` with `A` and `s`
-/// exact (geometry) and `G` the quadratic through three exact rays at
-/// `δ = mid, mid ± half/2`; the quadratic's departure from the line
-/// through them is charged as that model's error. The nodes lie on one
-/// line per light, so every pixel along the beam shares them
-/// ([`thin_nodes`]): three traced rays per node, not per pixel.
+/// What the thin path ([`serve_thin_all`]) knows of a pixel before the
+/// line's nodes are computed.
 struct ThinPlan {
     i: usize,
     k: usize,
@@ -1466,6 +1452,22 @@ fn thin_node<const C: usize>(input: &ProfileInput<'_, C>, k: usize, j: i64) -> O
 }
 
 /// The pixels of `candidates` the thin path serves (aligned with them).
+/// A beam narrower than [`THIN_BEAM_PX`] across a pixel's window has too
+/// few nodes across it for the main path, too few centre samples inside it
+/// for `G`. The window integral is taken in the beam's own
+/// coordinates, a rotation of the image's: along its centre line (exact:
+/// `n = m·a = 0` is a straight line in the image) by the trapezoid rule
+/// on nodes ¼ px apart (the window is 0 at both ends of its span, so the
+/// rule converges fast; every other node gives the estimate), and across
+/// it, at each node, over the band `|sin ψ| < sin_reach` between its exact
+/// edges `δ₋, δ₊` ([`BeamLight::band_across`]), as `δ = mid + half·sin θ`
+/// (Gauss–Legendre in θ, 16 nodes against 8; the substitution smooths a
+/// hard edge's square root). Across, `L = G(δ)·A(s)` with `A` and `s`
+/// exact (geometry) and `G` the quadratic through three exact rays at
+/// `δ = mid, mid ± half/2`; the quadratic's departure from the line
+/// through them is charged as that model's error. The nodes lie on one
+/// line per light, so every pixel along the beam shares them
+/// ([`thin_node`]): three traced rays per node, not per pixel.
 fn serve_thin_all<const C: usize>(input: &ProfileInput<'_, C>, candidates: &[usize], norm: f64) -> Vec<Option<ProfilePixel>> {
     let plans: Vec<Option<ThinPlan>> = candidates
         .par_iter()
@@ -1548,4 +1550,142 @@ fn serve_thin<'n, const C: usize>(
     let error: [f64; 3] =
         std::array::from_fn(|ch| ((fine[ch] - coarse[ch]).abs() + rule[ch] + model[ch]) / norm + (own + 2.0 * table_rel) * value[ch].abs());
     accept(input, i, k, value, error)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::scene::{Light, Scene};
+
+    /// A camera and spots of 5° and 0.5° (one aimed across the view, one
+    /// whose apex is inside the frame), as the renderer builds them.
+    fn beams() -> (CameraRays, Vec<BeamLight>) {
+        let json = serde_json::json!({
+            "version": 1,
+            "camera": {"type": "perspective", "position": [0, -9, 2], "resolution": [64, 36],
+                       "orientation": {"look_at": {"target": [0, 0, 2], "up": [0, 0, 1]}}},
+            "lights": [
+                {"type": "spot", "name": "a", "position": [-6, 4, 6], "power_w": 100,
+                 "orientation": {"look_at": {"target": [4, 2, 0], "up": [0, 0, 1]}}, "spot_size_deg": 5},
+                {"type": "spot", "name": "b", "position": [0.5, 2, 2.5], "power_w": 100,
+                 "orientation": {"look_at": {"target": [-3, 9, 1], "up": [0, 0, 1]}}, "spot_size_deg": 0.5}
+            ],
+            "media": [{"type": "homogeneous", "name": "haze", "scattering": 0.05}]
+        });
+        let scene = Scene::from_json_str(&json.to_string(), "<test>").unwrap();
+        let cam = CameraRays::new(&scene.camera);
+        let lights = scene
+            .lights
+            .iter()
+            .map(|l| match l {
+                Light::Spot(s) => BeamLight::new(&PointSource::<3>::from_spot(s, [1.0; 3], None), &cam, true, true),
+                _ => unreachable!(),
+            })
+            .collect();
+        (cam, lights)
+    }
+
+    /// A small deterministic generator (xorshift) of points in `[lo, hi)`.
+    fn points(n: usize, lo: [f64; 2], hi: [f64; 2]) -> Vec<[f64; 2]> {
+        let mut s = 0x9e37_79b9_7f4a_7c15u64;
+        let mut next = move || {
+            s ^= s << 13;
+            s ^= s >> 7;
+            s ^= s << 17;
+            (s >> 11) as f64 / (1u64 << 53) as f64
+        };
+        (0..n)
+            .map(|_| [lo[0] + (hi[0] - lo[0]) * next(), lo[1] + (hi[1] - lo[1]) * next()])
+            .collect()
+    }
+
+    #[test]
+    fn ray_planes_give_sin_psi_and_its_gradient() {
+        let (cam, lights) = beams();
+        for light in &lights {
+            for p in points(200, [-10.0, -10.0], [74.0, 46.0]) {
+                // Independently: the plane through the light and the
+                // normalised ray, from the camera's own direction.
+                let d = cam.direction(p[0], p[1]);
+                let direct = light.plane_of(cam.position, d).0;
+                let (s, g) = light.s_and_gradient(&cam, p);
+                assert!((s - direct).abs() < 1e-12, "{p:?}: {s} vs {direct}");
+                let e = 1e-4;
+                let at = |x: f64, y: f64| light.plane_of(cam.position, cam.direction(x, y)).0;
+                let fd = [
+                    (at(p[0] + e, p[1]) - at(p[0] - e, p[1])) / (2.0 * e),
+                    (at(p[0], p[1] + e) - at(p[0], p[1] - e)) / (2.0 * e),
+                ];
+                for a in 0..2 {
+                    assert!(
+                        (g[a] - fd[a]).abs() < 1e-6 * (1.0 + fd[a].abs()),
+                        "{p:?}: ∂{a} {} vs {}",
+                        g[a],
+                        fd[a]
+                    );
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn band_bounds_never_miss_the_band() {
+        let (cam, lights) = beams();
+        let mut touched = 0;
+        for light in &lights {
+            let s = |p: [f64; 2]| light.sin_psi_at(&cam, p[0], p[1]).abs();
+            for c in points(400, [-5.0, -5.0], [69.0, 41.0]) {
+                for half in [[0.5, 0.5], [1.5, 1.5], [4.0, 1.0], [8.0, 8.0]] {
+                    // A 41 × 41 grid over the rectangle: where any point is in
+                    // the band, the bound must say the band may touch it.
+                    let inside = (0..=40).any(|i| {
+                        (0..=40).any(|j| {
+                            let p = [
+                                c[0] - half[0] + half[0] * i as f64 / 20.0,
+                                c[1] - half[1] + half[1] * j as f64 / 20.0,
+                            ];
+                            s(p) < light.sin_reach
+                        })
+                    });
+                    if inside {
+                        touched += 1;
+                        assert!(light.band_may_touch_rect(c, half), "{c:?} ± {half:?}");
+                    }
+                }
+            }
+        }
+        assert!(touched > 50, "only {touched} rectangles touched a band");
+    }
+
+    #[test]
+    fn centre_line_and_band_edges_are_exact() {
+        let (cam, lights) = beams();
+        for light in &lights {
+            let s = |p: [f64; 2]| light.sin_psi_at(&cam, p[0], p[1]);
+            let (foot, dir) = light.centre_line([32.0, 18.0]).unwrap();
+            let normal = [dir[1], -dir[0]];
+            let mut crossed = 0;
+            for t in [-60.0, -20.0, -3.0, 0.0, 2.5, 17.0, 45.0] {
+                let q = [foot[0] + t * dir[0], foot[1] + t * dir[1]];
+                assert!(s(q).abs() < 1e-12, "the line at t = {t}: sin ψ = {}", s(q));
+                // Where the band closes around the line (not behind the
+                // light's image), its edges lie on |sin ψ| = sin_reach.
+                if let Some((lo, hi)) = light.band_across(q, normal) {
+                    crossed += 1;
+                    assert!(lo < 0.0 && hi > 0.0);
+                    for delta in [lo, hi] {
+                        let p = [q[0] + delta * normal[0], q[1] + delta * normal[1]];
+                        assert!(
+                            (s(p).abs() - light.sin_reach).abs() < 1e-9 * light.sin_reach,
+                            "edge at {delta}: {}",
+                            s(p)
+                        );
+                    }
+                    let mid = [q[0] + 0.5 * (lo + hi) * normal[0], q[1] + 0.5 * (lo + hi) * normal[1]];
+                    assert!(s(mid).abs() < light.sin_reach);
+                }
+            }
+            assert!(crossed >= 3, "the band closed around only {crossed} points");
+        }
+    }
 }
