@@ -555,7 +555,7 @@ pub(crate) fn filter_by_profile<const C: usize>(input: &ProfileInput<'_, C>, can
     };
     // Beams thinner than a node spacing: along their centre line, one ray per node.
     let norm = window_norm(&input.filter);
-    let thin = serve_thin_all(input, candidates, norm);
+    let thin = serve_thin_all(input, candidates, norm, THIN_BEAM_PX);
     let mut served: Vec<ProfilePixel> = Vec::new();
     let mut open: Vec<usize> = Vec::new();
     for (p, &i) in thin.into_iter().zip(candidates) {
@@ -587,6 +587,22 @@ pub(crate) fn filter_by_profile<const C: usize>(input: &ProfileInput<'_, C>, can
         rest.extend(left);
     }
     rest.sort_unstable();
+    // Where a beam widens from under 2 px to over it, the main path's
+    // stencil still holds the thin part and refuses, and the thin path's
+    // limit refuses the wide part: there the thin path takes beams up to
+    // twice that width (its rules do not depend on the width; the limit
+    // only keeps the cheaper main path where it runs).
+    if !rest.is_empty() {
+        let wide = serve_thin_all(input, &rest, norm, 2.0 * THIN_BEAM_PX);
+        let mut still = Vec::with_capacity(rest.len());
+        for (p, &i) in wide.into_iter().zip(&rest) {
+            match p {
+                Some(p) => served.push(p),
+                None => still.push(i),
+            }
+        }
+        rest = still;
+    }
     (served, rest)
 }
 
@@ -1316,7 +1332,7 @@ fn thin_line<const C: usize>(input: &ProfileInput<'_, C>, k: usize) -> Option<([
 
 /// Whether the thin path may take pixel `i` for light `k`, and which of
 /// the line's nodes its window needs.
-fn thin_plan<const C: usize>(input: &ProfileInput<'_, C>, k: usize, i: usize) -> Option<ThinPlan> {
+fn thin_plan<const C: usize>(input: &ProfileInput<'_, C>, k: usize, i: usize, widest: f64) -> Option<ThinPlan> {
     let w = input.width;
     let (x, y) = (i % w, i / w);
     let light = &input.lights[k];
@@ -1329,7 +1345,7 @@ fn thin_plan<const C: usize>(input: &ProfileInput<'_, C>, k: usize, i: usize) ->
         return None;
     }
     let b = light.sin_reach / gn;
-    if 2.0 * b >= THIN_BEAM_PX || s0.abs() / gn > r * std::f64::consts::SQRT_2 + b {
+    if 2.0 * b >= widest || s0.abs() / gn > r * std::f64::consts::SQRT_2 + b {
         return None;
     }
     // Not near a light's image: the beam's apex must be outside the window.
@@ -1387,7 +1403,7 @@ struct ThinNode {
 /// Node `j` of light `k`'s centre line, or `None` where the model does
 /// not hold there (an exact ray off the beam's core or its surface, a chord
 /// cut by a surface, the band not closed around the line).
-fn thin_node<const C: usize>(input: &ProfileInput<'_, C>, k: usize, j: i64) -> Option<ThinNode> {
+fn thin_node<const C: usize>(input: &ProfileInput<'_, C>, k: usize, j: i64, widest: f64) -> Option<ThinNode> {
     let light = &input.lights[k];
     let table = light.table.as_ref()?;
     let cam = input.cam;
@@ -1397,7 +1413,7 @@ fn thin_node<const C: usize>(input: &ProfileInput<'_, C>, k: usize, j: i64) -> O
     let q = [foot[0] + t * dir[0], foot[1] + t * dir[1]];
     let (lo, hi) = light.band_across(q, normal)?;
     let (mid, half) = (0.5 * (lo + hi), 0.5 * (hi - lo));
-    if half.is_nan() || half <= 0.0 || 2.0 * half >= THIN_BEAM_PX {
+    if half.is_nan() || half <= 0.0 || 2.0 * half >= widest {
         return None;
     }
     let at = |delta: f64| [q[0] + delta * normal[0], q[1] + delta * normal[1]];
@@ -1468,16 +1484,16 @@ fn thin_node<const C: usize>(input: &ProfileInput<'_, C>, k: usize, j: i64) -> O
 /// through them is charged as that model's error. The nodes lie on one
 /// line per light, so every pixel along the beam shares them
 /// ([`thin_node`]): three traced rays per node, not per pixel.
-fn serve_thin_all<const C: usize>(input: &ProfileInput<'_, C>, candidates: &[usize], norm: f64) -> Vec<Option<ProfilePixel>> {
+fn serve_thin_all<const C: usize>(input: &ProfileInput<'_, C>, candidates: &[usize], norm: f64, widest: f64) -> Vec<Option<ProfilePixel>> {
     let plans: Vec<Option<ThinPlan>> = candidates
         .par_iter()
-        .map(|&i| (0..input.lights.len()).find_map(|k| thin_plan(input, k, i)))
+        .map(|&i| (0..input.lights.len()).find_map(|k| thin_plan(input, k, i, widest)))
         .collect();
     // The nodes the plans need, per light, each computed once.
     let mut wanted: Vec<(usize, i64)> = plans.iter().flatten().flat_map(|p| (p.j0..=p.j1).map(move |j| (p.k, j))).collect();
     wanted.sort_unstable();
     wanted.dedup();
-    let nodes: Vec<Option<ThinNode>> = wanted.par_iter().map(|&(k, j)| thin_node(input, k, j)).collect();
+    let nodes: Vec<Option<ThinNode>> = wanted.par_iter().map(|&(k, j)| thin_node(input, k, j, widest)).collect();
     let node_of = |k: usize, j: i64| -> Option<&ThinNode> {
         let n = wanted.binary_search(&(k, j)).ok()?;
         nodes[n].as_ref()
