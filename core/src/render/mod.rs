@@ -2618,7 +2618,8 @@ fn render_channels<const C: usize, const K: usize>(
                     let servable = !matches!(casters.get(k), Some(smooth::Casters::Any) | None);
                     profile::BeamLight::new(&p.light, &cam, p.casts_shadows, servable)
                 })
-                .collect()
+                .collect::<Option<Vec<_>>>()
+                .unwrap_or_default()
         } else {
             Vec::new()
         };

@@ -258,8 +258,8 @@ pub(crate) struct BeamLight {
     light_path_extinction: bool,
     /// `None` where the light cannot be served.
     table: Option<ProfileTable>,
-    /// The ray planes' normals across the image (a perspective camera).
-    image: Option<ImagePlanes>,
+    /// The ray planes' normals across the image.
+    image: ImagePlanes,
 }
 
 /// The normal `m = (C − L) × D(p)` of the plane through the light `L` and
@@ -285,53 +285,47 @@ impl BeamLight {
     /// `servable`: whether the model can serve its beam at all (false for a
     /// light whose casters may shadow any chord, [`Casters::Any`]: it is then
     /// only another light's cone to keep clear of, and builds no table).
-    pub(crate) fn new<const C: usize>(light: &PointSource<C>, cam: &CameraRays, casts_shadows: bool, servable: bool) -> BeamLight {
+    /// `None` for a camera without ray planes affine in the image point (an
+    /// equirectangular one, which has no pixel filter either).
+    pub(crate) fn new<const C: usize>(light: &PointSource<C>, cam: &CameraRays, casts_shadows: bool, servable: bool) -> Option<BeamLight> {
         let axis = light.frame.axis;
-        let image = cam.affine_direction().map(|(d0, dx, dy)| {
-            let w = cam.position - light.position;
-            let (m0, mx, my) = (w.cross(d0), w.cross(dx), w.cross(dy));
-            let n_grad = [mx.dot(axis), my.dot(axis)];
-            ImagePlanes {
-                m0,
-                mx,
-                my,
-                n_grad,
-                n_grad_norm: n_grad[0].hypot(n_grad[1]),
-                mx_len: mx.length(),
-                my_len: my.length(),
-            }
-        });
-        BeamLight {
+        let (d0, dx, dy) = cam.affine_direction()?;
+        let w = cam.position - light.position;
+        let (m0, mx, my) = (w.cross(d0), w.cross(dx), w.cross(dy));
+        let n_grad = [mx.dot(axis), my.dot(axis)];
+        let image = ImagePlanes {
+            m0,
+            mx,
+            my,
+            n_grad,
+            n_grad_norm: n_grad[0].hypot(n_grad[1]),
+            mx_len: mx.length(),
+            my_len: my.length(),
+        };
+        Some(BeamLight {
             position: light.position,
             axis,
             sin_reach: (1.0 - light.cos_reach * light.cos_reach).max(0.0).sqrt(),
             light_path_extinction: casts_shadows,
             table: servable.then(|| ProfileTable::new(light)),
             image,
-        }
+        })
     }
 
     /// `±sin ψ` of the camera's ray through image point `(px, py)`.
     #[inline]
-    fn sin_psi_at(&self, cam: &CameraRays, px: f64, py: f64) -> f64 {
-        match &self.image {
-            Some(f) => {
-                let m = f.m0 + f.mx * px + f.my * py;
-                m.dot(self.axis) / m.length()
-            }
-            None => {
-                let d = cam.direction(px, py);
-                self.plane_of(cam.position + d * cam.start_distance(d), d).0
-            }
-        }
+    fn sin_psi_at(&self, px: f64, py: f64) -> f64 {
+        let f = &self.image;
+        let m = f.m0 + f.mx * px + f.my * py;
+        m.dot(self.axis) / m.length()
     }
 
     /// Whether the camera's ray through image point `(px, py)` certainly
     /// misses the cone (its plane does, with the margin of [`chord`]'s test
-    /// of other lights' cones): false without ray planes.
+    /// of other lights' cones).
     #[inline]
     fn clear_of_cone_at(&self, px: f64, py: f64) -> bool {
-        let Some(f) = &self.image else { return false };
+        let f = &self.image;
         let m = f.m0 + f.mx * px + f.my * py;
         let len = m.length();
         len > 0.0 && (m.dot(self.axis) / len).abs() > self.sin_reach * (1.0 + 1e-9) + 1e-12
@@ -339,9 +333,9 @@ impl BeamLight {
 
     /// The beam's centre line in the image, `n(p) = m(p)·a = 0` (straight:
     /// `n` is affine): its point nearest `c` and its unit direction
-    /// (`∇n` turned by +90°). `None` without ray planes or where `∇n = 0`.
+    /// (`∇n` turned by +90°). `None` where `∇n = 0`.
     fn centre_line(&self, c: [f64; 2]) -> Option<([f64; 2], [f64; 2])> {
-        let f = self.image.as_ref()?;
+        let f = &self.image;
         let gn = f.n_grad_norm;
         if !(gn > 0.0 && gn.is_finite()) {
             return None;
@@ -357,7 +351,7 @@ impl BeamLight {
     /// sin²·|m|²` is a quadratic inequality in `δ`. `None` where it does
     /// not hold between two roots around `δ = 0`.
     fn band_across(&self, q: [f64; 2], normal: [f64; 2]) -> Option<(f64, f64)> {
-        let f = self.image.as_ref()?;
+        let f = &self.image;
         let mq = f.m0 + f.mx * q[0] + f.my * q[1];
         let w = f.mx * normal[0] + f.my * normal[1];
         let (nq, dn) = (mq.dot(self.axis), f.n_grad[0] * normal[0] + f.n_grad[1] * normal[1]);
@@ -376,31 +370,18 @@ impl BeamLight {
         (lo.is_finite() && hi.is_finite()).then_some((lo, hi))
     }
 
-    /// `±sin ψ` at image point `q` and its gradient, per px: exact from the
-    /// ray planes, or by central differences over 1/64 px without them.
-    fn s_and_gradient(&self, cam: &CameraRays, q: [f64; 2]) -> (f64, [f64; 2]) {
-        match &self.image {
-            Some(f) => {
-                let m = f.m0 + f.mx * q[0] + f.my * q[1];
-                let len = m.length();
-                let s = m.dot(self.axis) / len;
-                // ∇(n/|m|) = ∇n/|m| − n·(m·∇m)/|m|³.
-                let g = [
-                    (f.n_grad[0] - s * m.dot(f.mx) / len) / len,
-                    (f.n_grad[1] - s * m.dot(f.my) / len) / len,
-                ];
-                (s, g)
-            }
-            None => {
-                let at = |px: f64, py: f64| self.sin_psi_at(cam, px, py);
-                let e = 1.0 / 64.0;
-                let g = [
-                    (at(q[0] + e, q[1]) - at(q[0] - e, q[1])) / (2.0 * e),
-                    (at(q[0], q[1] + e) - at(q[0], q[1] - e)) / (2.0 * e),
-                ];
-                (at(q[0], q[1]), g)
-            }
-        }
+    /// `±sin ψ` at image point `q` and its gradient, per px (exact).
+    fn s_and_gradient(&self, q: [f64; 2]) -> (f64, [f64; 2]) {
+        let f = &self.image;
+        let m = f.m0 + f.mx * q[0] + f.my * q[1];
+        let len = m.length();
+        let s = m.dot(self.axis) / len;
+        // ∇(n/|m|) = ∇n/|m| − n·(m·∇m)/|m|³.
+        let g = [
+            (f.n_grad[0] - s * m.dot(f.mx) / len) / len,
+            (f.n_grad[1] - s * m.dot(f.my) / len) / len,
+        ];
+        (s, g)
     }
 
     /// Whether the cone's band `|sin ψ| < sin_reach` may reach the square
@@ -415,9 +396,9 @@ impl BeamLight {
     /// least magnitude is at least `|n(c)| − |∂ₓn|·half₀ − |∂_y n|·half₁`,
     /// and the denominator is at most `|m(c)| + |mₓ|·half₀ + |m_y|·half₁`
     /// (triangle inequality); the band misses the rectangle when the first
-    /// exceeds `sin_reach` times the second. True without ray planes.
+    /// exceeds `sin_reach` times the second.
     fn band_may_touch_rect(&self, c: [f64; 2], half: [f64; 2]) -> bool {
-        let Some(f) = &self.image else { return true };
+        let f = &self.image;
         let m = f.m0 + f.mx * c[0] + f.my * c[1];
         let n_min = (m.dot(self.axis).abs() - f.n_grad[0].abs() * half[0] - f.n_grad[1].abs() * half[1]).max(0.0);
         let den_max = m.length() + f.mx_len * half[0] + f.my_len * half[1];
@@ -428,9 +409,9 @@ impl BeamLight {
 
     /// The beam's full width across the image at `c`, px: `2·sin_reach`
     /// over the gradient of `sin ψ` where `sin ψ = 0`, i.e. `|∇n|/|m|`.
-    /// NaN without ray planes.
+    /// 0 at the light's image, ∞ where `∇n = 0`, NaN where both vanish.
     fn width_px_at(&self, c: [f64; 2]) -> f64 {
-        let Some(f) = &self.image else { return f64::NAN };
+        let f = &self.image;
         let m = f.m0 + f.mx * c[0] + f.my * c[1];
         2.0 * self.sin_reach * m.length() / f.n_grad_norm
     }
@@ -442,8 +423,8 @@ impl BeamLight {
     /// cannot tell.
     fn thin_beam_touches(&self, c: [f64; 2], radius: f64) -> bool {
         let width = self.width_px_at(c);
-        // NaN (no ray planes, a ray through the light) counts as thin; a
-        // beam edge-on to the image (zero gradient: all or nothing) as wide.
+        // NaN (0/0) counts as thin; a beam edge-on to the image (∇n = 0:
+        // the band is all or nothing) as wide.
         (width.is_nan() || width < THIN_BEAM_PX) && self.band_may_touch(c, radius)
     }
 
@@ -1339,7 +1320,7 @@ fn thin_plan<const C: usize>(input: &ProfileInput<'_, C>, k: usize, i: usize, wi
     light.table.as_ref()?;
     let r = input.filter.radius();
     let c = [x as f64 + 0.5, y as f64 + 0.5];
-    let (s0, g) = light.s_and_gradient(input.cam, c);
+    let (s0, g) = light.s_and_gradient(c);
     let gn = g[0].hypot(g[1]);
     if !(gn > 0.0 && gn.is_finite() && s0.is_finite()) {
         return None;
@@ -1417,7 +1398,7 @@ fn thin_node<const C: usize>(input: &ProfileInput<'_, C>, k: usize, j: i64, wide
         return None;
     }
     let at = |delta: f64| [q[0] + delta * normal[0], q[1] + delta * normal[1]];
-    let s_at = |p: [f64; 2]| light.sin_psi_at(cam, p[0], p[1]);
+    let s_at = |p: [f64; 2]| light.sin_psi_at(p[0], p[1]);
     // One exact ray: `G = L/A` there, its surface and own relative error.
     let g_at = |p: [f64; 2]| -> Option<([f64; 3], u32, f64)> {
         let a = table.eval(s_at(p).abs());
@@ -1594,7 +1575,7 @@ mod tests {
             .lights
             .iter()
             .map(|l| match l {
-                Light::Spot(s) => BeamLight::new(&PointSource::<3>::from_spot(s, [1.0; 3], None), &cam, true, true),
+                Light::Spot(s) => BeamLight::new(&PointSource::<3>::from_spot(s, [1.0; 3], None), &cam, true, true).unwrap(),
                 _ => unreachable!(),
             })
             .collect();
@@ -1624,7 +1605,7 @@ mod tests {
                 // normalised ray, from the camera's own direction.
                 let d = cam.direction(p[0], p[1]);
                 let direct = light.plane_of(cam.position, d).0;
-                let (s, g) = light.s_and_gradient(&cam, p);
+                let (s, g) = light.s_and_gradient(p);
                 assert!((s - direct).abs() < 1e-12, "{p:?}: {s} vs {direct}");
                 let e = 1e-4;
                 let at = |x: f64, y: f64| light.plane_of(cam.position, cam.direction(x, y)).0;
@@ -1646,10 +1627,10 @@ mod tests {
 
     #[test]
     fn band_bounds_never_miss_the_band() {
-        let (cam, lights) = beams();
+        let (_, lights) = beams();
         let mut touched = 0;
         for light in &lights {
-            let s = |p: [f64; 2]| light.sin_psi_at(&cam, p[0], p[1]).abs();
+            let s = |p: [f64; 2]| light.sin_psi_at(p[0], p[1]).abs();
             for c in points(400, [-5.0, -5.0], [69.0, 41.0]) {
                 for half in [[0.5, 0.5], [1.5, 1.5], [4.0, 1.0], [8.0, 8.0]] {
                     // A 41 × 41 grid over the rectangle: where any point is in
@@ -1675,9 +1656,9 @@ mod tests {
 
     #[test]
     fn centre_line_and_band_edges_are_exact() {
-        let (cam, lights) = beams();
+        let (_, lights) = beams();
         for light in &lights {
-            let s = |p: [f64; 2]| light.sin_psi_at(&cam, p[0], p[1]);
+            let s = |p: [f64; 2]| light.sin_psi_at(p[0], p[1]);
             let (foot, dir) = light.centre_line([32.0, 18.0]).unwrap();
             let normal = [dir[1], -dir[0]];
             let mut crossed = 0;
