@@ -320,17 +320,6 @@ impl BeamLight {
         m.dot(self.axis) / m.length()
     }
 
-    /// Whether the camera's ray through image point `(px, py)` certainly
-    /// misses the cone (its plane does, with the margin of [`chord`]'s test
-    /// of other lights' cones).
-    #[inline]
-    fn clear_of_cone_at(&self, px: f64, py: f64) -> bool {
-        let f = &self.image;
-        let m = f.m0 + f.mx * px + f.my * py;
-        let len = m.length();
-        len > 0.0 && (m.dot(self.axis) / len).abs() > self.sin_reach * (1.0 + 1e-9) + 1e-12
-    }
-
     /// The beam's centre line in the image, `n(p) = m(p)·a = 0` (straight:
     /// `n` is affine): its point nearest `c` and its unit direction
     /// (`∇n` turned by +90°). `None` where `∇n = 0`.
@@ -989,8 +978,9 @@ fn node_value<const C: usize>(
 ) -> Option<NodeValue> {
     let table = light.table.as_ref()?;
     // A ray outside every cone has no in-scatter, whichever surface it ends
-    // on: no chord to find (the nodes outside a beam beside its edge).
-    if input.lights.iter().all(|l| l.clear_of_cone_at(px, py)) {
+    // on: no chord to find (the nodes outside a beam beside its edge; the
+    // point bound carries the margin of chord()'s test of other cones).
+    if !input.lights.iter().any(|l| l.band_may_touch([px, py], 0.0)) {
         return Some(NodeValue {
             value: [0.0; 3],
             error: [0.0; 3],
