@@ -1366,9 +1366,44 @@ struct ThinNode {
     ends: [[f64; 2]; 2],
     /// `G` at `δ = mid, mid + half/2, mid − half/2`, RGB.
     g: [[f64; 3]; 3],
-    /// Gauss–Legendre points across (16, then 8): image point, weight
-    /// times `A` (without the window), and `z = (δ − mid)/(half/2)`.
-    points: Vec<([f64; 2], f64, f64)>,
+    /// Gauss–Legendre points across (16, then 8).
+    points: Vec<ThinPoint>,
+}
+
+/// Pixel columns (or rows) whose window may hold a point: the first one,
+/// and up to 5 from it (a window reaches ±1.5 px at most; one spare for
+/// rounding).
+const WINDOW_SLOTS: usize = 5;
+
+/// A Gauss–Legendre point across a thin node: weight times `A` (without
+/// the window), `z = (δ − mid)/(half/2)`, and the window's factors for the
+/// pixel columns and rows around it. They are the values
+/// `PixelFilter::weight(p − pixel centre)` that each pixel's window would
+/// compute, computed once per point instead of once per pixel holding it.
+struct ThinPoint {
+    f: f64,
+    z: f64,
+    first: [i64; 2],
+    window: [[f64; WINDOW_SLOTS]; 2],
+}
+
+impl ThinPoint {
+    fn new(filter: &PixelFilter, p: [f64; 2], f: f64, z: f64) -> ThinPoint {
+        let r = filter.radius();
+        let first = p.map(|v| (v - 0.5 - r).ceil() as i64 - 1);
+        let window = std::array::from_fn(|a| std::array::from_fn(|m| filter.weight(p[a] - ((first[a] + m as i64) as f64 + 0.5))));
+        ThinPoint { f, z, first, window }
+    }
+
+    /// The window of the pixel at column `x`, row `y` at this point.
+    fn window_of(&self, x: i64, y: i64) -> f64 {
+        let (mx, my) = (x - self.first[0], y - self.first[1]);
+        if (0..WINDOW_SLOTS as i64).contains(&mx) && (0..WINDOW_SLOTS as i64).contains(&my) {
+            self.window[0][mx as usize] * self.window[1][my as usize]
+        } else {
+            0.0
+        }
+    }
 }
 
 /// Node `j` of light `k`'s centre line, or `None` where the model does
@@ -1425,7 +1460,7 @@ fn thin_node<const C: usize>(input: &ProfileInput<'_, C>, k: usize, j: i64, wide
             let theta = u * std::f64::consts::FRAC_PI_2;
             let p = at(mid + half * theta.sin());
             let f = wgt * std::f64::consts::FRAC_PI_2 * half * theta.cos() * table.eval(s_at(p).abs());
-            (p, f, 2.0 * theta.sin())
+            ThinPoint::new(&input.filter, p, f, 2.0 * theta.sin())
         })
         .collect();
     Some(ThinNode {
@@ -1486,7 +1521,7 @@ fn serve_thin<'n, const C: usize>(
 ) -> Option<ProfilePixel> {
     let ThinPlan { i, k, c, b, j0, j1 } = *plan;
     let table = input.lights[k].table.as_ref()?;
-    let window = |p: [f64; 2]| input.filter.weight(p[0] - c[0]) * input.filter.weight(p[1] - c[1]);
+    let (x, y) = ((i % input.width) as i64, (i / input.width) as i64);
     let h = THIN_NODE_PX;
     let (mut fine, mut coarse, mut rule, mut model, mut own) = ([0.0f64; 3], [0.0f64; 3], [0.0f64; 3], [0.0f64; 3], 0.0f64);
     let mut group = None;
@@ -1505,10 +1540,10 @@ fn serve_thin<'n, const C: usize>(
             continue;
         }
         let [g0, gp, gm] = node.g;
-        let across = |points: &[([f64; 2], f64, f64)]| -> ([f64; 3], [f64; 3]) {
+        let across = |points: &[ThinPoint]| -> ([f64; 3], [f64; 3]) {
             let (mut v, mut curv) = ([0.0f64; 3], [0.0f64; 3]);
-            for &(p, f0, z) in points {
-                let f = f0 * window(p);
+            for point in points {
+                let (f, z) = (point.f * point.window_of(x, y), point.z);
                 if f == 0.0 {
                     continue;
                 }
