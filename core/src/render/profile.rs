@@ -525,7 +525,8 @@ pub(crate) fn filter_by_profile<const C: usize>(input: &ProfileInput<'_, C>, can
     };
     // Beams thinner than a node spacing: along their centre line, one ray per node.
     let norm = window_norm(&input.filter);
-    let thin = serve_thin_all(input, candidates, norm, THIN_BEAM_PX);
+    let mut thin_nodes = ThinNodes::new();
+    let thin = serve_thin_all(input, candidates, norm, THIN_BEAM_PX, &mut thin_nodes);
     let mut served: Vec<ProfilePixel> = Vec::new();
     let mut open: Vec<usize> = Vec::new();
     for (p, &i) in thin.into_iter().zip(candidates) {
@@ -563,7 +564,7 @@ pub(crate) fn filter_by_profile<const C: usize>(input: &ProfileInput<'_, C>, can
     // twice that width (its rules do not depend on the width; the limit
     // only keeps the cheaper main path where it runs).
     if !rest.is_empty() {
-        let wide = serve_thin_all(input, &rest, norm, 2.0 * THIN_BEAM_PX);
+        let wide = serve_thin_all(input, &rest, norm, 2.0 * THIN_BEAM_PX, &mut thin_nodes);
         let mut still = Vec::with_capacity(rest.len());
         for (p, &i) in wide.into_iter().zip(&rest) {
             match p {
@@ -1409,19 +1410,52 @@ impl ThinPoint {
 /// Node `j` of light `k`'s centre line, or `None` where the model does
 /// not hold there (an exact ray off the beam's core or its surface, a chord
 /// cut by a surface, the band not closed around the line).
-fn thin_node<const C: usize>(input: &ProfileInput<'_, C>, k: usize, j: i64, widest: f64) -> Option<ThinNode> {
+fn thin_node<const C: usize>(input: &ProfileInput<'_, C>, k: usize, j: i64, widest: f64) -> Result<ThinNode, ThinMiss> {
     let light = &input.lights[k];
-    let table = light.table.as_ref()?;
-    let cam = input.cam;
-    let (foot, dir) = thin_line(input, k)?;
+    let table = light.table.as_ref().ok_or(ThinMiss::Fails)?;
+    let (foot, dir) = thin_line(input, k).ok_or(ThinMiss::Fails)?;
     let normal = [dir[1], -dir[0]];
     let t = j as f64 * THIN_NODE_PX;
     let q = [foot[0] + t * dir[0], foot[1] + t * dir[1]];
-    let (lo, hi) = light.band_across(q, normal)?;
+    let (lo, hi) = light.band_across(q, normal).ok_or(ThinMiss::Fails)?;
     let (mid, half) = (0.5 * (lo + hi), 0.5 * (hi - lo));
-    if half.is_nan() || half <= 0.0 || 2.0 * half >= widest {
-        return None;
+    if half.is_nan() || half <= 0.0 {
+        return Err(ThinMiss::Fails);
     }
+    if 2.0 * half >= widest {
+        return Err(ThinMiss::Wider);
+    }
+    thin_node_across(input, k, table, q, normal, mid, half, lo, hi).ok_or(ThinMiss::Fails)
+}
+
+/// The thin nodes computed so far, by light and index along its line.
+type ThinNodes = std::collections::BTreeMap<(usize, i64), Result<ThinNode, ThinMiss>>;
+
+/// Why there is no [`ThinNode`]: the band is wider there than the pass
+/// takes (a later pass with a wider limit computes it), or the model does
+/// not hold there whatever the limit.
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum ThinMiss {
+    Wider,
+    Fails,
+}
+
+/// [`thin_node`] once the band across the line at `q` is known: `[lo, hi]`
+/// along `normal`, `mid` and `half` its centre and half-width.
+#[allow(clippy::too_many_arguments)]
+fn thin_node_across<const C: usize>(
+    input: &ProfileInput<'_, C>,
+    k: usize,
+    table: &ProfileTable,
+    q: [f64; 2],
+    normal: [f64; 2],
+    mid: f64,
+    half: f64,
+    lo: f64,
+    hi: f64,
+) -> Option<ThinNode> {
+    let light = &input.lights[k];
+    let cam = input.cam;
     let at = |delta: f64| [q[0] + delta * normal[0], q[1] + delta * normal[1]];
     let s_at = |p: [f64; 2]| light.sin_psi_at(p[0], p[1]);
     // One exact ray: `G = L/A` there, its surface and own relative error.
@@ -1490,20 +1524,31 @@ fn thin_node<const C: usize>(input: &ProfileInput<'_, C>, k: usize, j: i64, wide
 /// through them is charged as that model's error. The nodes lie on one
 /// line per light, so every pixel along the beam shares them
 /// ([`thin_node`]): three traced rays per node, not per pixel.
-fn serve_thin_all<const C: usize>(input: &ProfileInput<'_, C>, candidates: &[usize], norm: f64, widest: f64) -> Vec<Option<ProfilePixel>> {
+fn serve_thin_all<const C: usize>(
+    input: &ProfileInput<'_, C>,
+    candidates: &[usize],
+    norm: f64,
+    widest: f64,
+    known: &mut ThinNodes,
+) -> Vec<Option<ProfilePixel>> {
     let plans: Vec<Option<ThinPlan>> = candidates
         .par_iter()
         .map(|&i| (0..input.lights.len()).find_map(|k| thin_plan(input, k, i, widest)))
         .collect();
-    // The nodes the plans need, per light, each computed once.
-    let mut wanted: Vec<(usize, i64)> = plans.iter().flatten().flat_map(|p| (p.j0..=p.j1).map(move |j| (p.k, j))).collect();
+    // The nodes the plans need, per light, each computed once: an earlier
+    // pass's nodes are kept, except those it found wider than its limit.
+    let mut wanted: Vec<(usize, i64)> = plans
+        .iter()
+        .flatten()
+        .flat_map(|p| (p.j0..=p.j1).map(move |j| (p.k, j)))
+        .filter(|key| known.get(key).is_none_or(|n| matches!(n, Err(ThinMiss::Wider))))
+        .collect();
     wanted.sort_unstable();
     wanted.dedup();
-    let nodes: Vec<Option<ThinNode>> = wanted.par_iter().map(|&(k, j)| thin_node(input, k, j, widest)).collect();
-    let node_of = |k: usize, j: i64| -> Option<&ThinNode> {
-        let n = wanted.binary_search(&(k, j)).ok()?;
-        nodes[n].as_ref()
-    };
+    let nodes: Vec<Result<ThinNode, ThinMiss>> = wanted.par_iter().map(|&(k, j)| thin_node(input, k, j, widest)).collect();
+    known.extend(wanted.into_iter().zip(nodes));
+    let known = &*known;
+    let node_of = |k: usize, j: i64| -> Option<&ThinNode> { known.get(&(k, j))?.as_ref().ok() };
     plans
         .par_iter()
         .map(|plan| {
