@@ -1355,6 +1355,20 @@ fn thin_plan<const C: usize>(input: &ProfileInput<'_, C>, k: usize, i: usize, wi
     (j1 > j0 + 2).then_some(ThinPlan { i, k, c, b, j0, j1 })
 }
 
+/// The thin path's rule across a beam, in `δ = mid + half·sin θ`: the
+/// Gauss–Legendre nodes (16, then 8) in `θ ∈ [−π/2, π/2]` as
+/// `(sin θ, weight·(π/2)·cos θ)`, computed once per process.
+fn across_nodes() -> &'static [(f64, f64); 24] {
+    static NODES: std::sync::OnceLock<[(f64, f64); 24]> = std::sync::OnceLock::new();
+    NODES.get_or_init(|| {
+        let mut all = GL16.iter().chain(GL8.iter()).map(|&(u, wgt)| {
+            let theta = u * std::f64::consts::FRAC_PI_2;
+            (theta.sin(), wgt * std::f64::consts::FRAC_PI_2 * theta.cos())
+        });
+        std::array::from_fn(|_| all.next().unwrap_or_default())
+    })
+}
+
 /// A node on a thin beam's centre line: what every window holding it needs.
 struct ThinNode {
     /// The surface's plane group the three exact rays end on.
@@ -1380,7 +1394,8 @@ const WINDOW_SLOTS: usize = 5;
 /// the window), `z = (δ − mid)/(half/2)`, and the window's factors for the
 /// pixel columns and rows around it. They are the values
 /// `PixelFilter::weight(p − pixel centre)` that each pixel's window would
-/// compute, computed once per point instead of once per pixel holding it.
+/// compute (to rounding), computed once per point instead of once per pixel
+/// holding it.
 struct ThinPoint {
     f: f64,
     z: f64,
@@ -1392,7 +1407,7 @@ impl ThinPoint {
     fn new(filter: &PixelFilter, p: [f64; 2], f: f64, z: f64) -> ThinPoint {
         let r = filter.radius();
         let first = p.map(|v| (v - 0.5 - r).ceil() as i64 - 1);
-        let window = std::array::from_fn(|a| std::array::from_fn(|m| filter.weight(p[a] - ((first[a] + m as i64) as f64 + 0.5))));
+        let window = std::array::from_fn(|a| filter.weights_at_unit_steps(p[a] - (first[a] as f64 + 0.5)));
         ThinPoint { f, z, first, window }
     }
 
@@ -1487,14 +1502,12 @@ fn thin_node_across<const C: usize>(
     if s0 != sp || s0 != sm {
         return None;
     }
-    let points = GL16
+    let points = across_nodes()
         .iter()
-        .chain(GL8.iter())
-        .map(|&(u, wgt)| {
-            let theta = u * std::f64::consts::FRAC_PI_2;
-            let p = at(mid + half * theta.sin());
-            let f = wgt * std::f64::consts::FRAC_PI_2 * half * theta.cos() * table.eval(s_at(p).abs());
-            ThinPoint::new(&input.filter, p, f, 2.0 * theta.sin())
+        .map(|&(sin_theta, w_cos_theta)| {
+            let p = at(mid + half * sin_theta);
+            let f = w_cos_theta * half * table.eval(s_at(p).abs());
+            ThinPoint::new(&input.filter, p, f, 2.0 * sin_theta)
         })
         .collect();
     Some(ThinNode {
