@@ -2779,8 +2779,14 @@ fn render_channels<const C: usize, const K: usize>(
         for p in &profiled {
             let i = p.index;
             inscatter[i] = p.value.map(|v| v as f32);
-            if let Some(img) = light_inscatter.get_mut(p.light) {
-                img[i] = p.value.map(|v| v as f32);
+            match p.light {
+                Some(k) => {
+                    if let Some(img) = light_inscatter.get_mut(k) {
+                        img[i] = p.value.map(|v| v as f32);
+                    }
+                }
+                // No beam reaches the window: 0 in every light's layer.
+                None => light_inscatter.iter_mut().for_each(|img| img[i] = [0.0; 3]),
             }
             if want_error {
                 error[i] = p.error.map(|v| v as f32);

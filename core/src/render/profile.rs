@@ -466,8 +466,9 @@ pub(crate) struct TracedRay {
 /// A pixel the model served.
 pub(crate) struct ProfilePixel {
     pub index: usize,
-    /// The light whose beam it is.
-    pub light: usize,
+    /// The light whose beam it is; `None` where no light's beam reaches the
+    /// window (the in-scatter is 0 in every light's layer).
+    pub light: Option<usize>,
     pub value: [f64; 3],
     pub error: [f64; 3],
 }
@@ -523,11 +524,38 @@ pub(crate) fn filter_by_profile<const C: usize>(input: &ProfileInput<'_, C>, can
             .iter()
             .any(|&(ix, iy)| (ix - cx).abs() <= LIGHT_IMAGE_MARGIN && (iy - cy).abs() <= LIGHT_IMAGE_MARGIN)
     };
+    // A window that no light's band reaches (by the exact conservative
+    // bound over its square) holds no in-scatter: here every light is a
+    // beam, and a ray outside every band crosses no cone. Such pixels are
+    // flagged beside a beam's edge (the flags are dilated by a pixel) and
+    // along the frame's border, where the stencils below cannot reach.
+    // The square in 4 × 4 parts: the bound is loose over a whole window
+    // near a beam's apex, where the ray planes turn fast.
+    const PARTS: usize = 4;
+    let part = r / PARTS as f64;
+    let (outside, candidates): (Vec<usize>, Vec<usize>) = candidates.iter().partition(|&&i| {
+        let (x0, y0) = ((i % w) as f64 + 0.5 - r + part, (i / w) as f64 + 0.5 - r + part);
+        !input.lights.iter().any(|l| {
+            (0..PARTS * PARTS).any(|n| {
+                let c = [x0 + 2.0 * part * (n % PARTS) as f64, y0 + 2.0 * part * (n / PARTS) as f64];
+                l.band_may_touch_rect(c, [part, part])
+            })
+        })
+    });
+    let candidates = &candidates[..];
     // Beams thinner than a node spacing: along their centre line, one ray per node.
     let norm = window_norm(&input.filter);
     let mut thin_nodes = ThinNodes::new();
     let thin = serve_thin_all(input, candidates, norm, THIN_BEAM_PX, &mut thin_nodes);
-    let mut served: Vec<ProfilePixel> = Vec::new();
+    let mut served: Vec<ProfilePixel> = outside
+        .into_iter()
+        .map(|index| ProfilePixel {
+            index,
+            light: None,
+            value: [0.0; 3],
+            error: [0.0; 3],
+        })
+        .collect();
     let mut open: Vec<usize> = Vec::new();
     for (p, &i) in thin.into_iter().zip(candidates) {
         match p {
@@ -890,20 +918,28 @@ fn centre_grid<const C: usize>(input: &ProfileInput<'_, C>, k: usize, light: &Be
                 if !me.valid || me.has_rho {
                     continue;
                 }
-                let mut nb: Vec<&Centre> = Vec::with_capacity(4);
+                // The known 4-neighbours (a fixed array: this runs for
+                // every unknown centre, six rounds per tile).
+                let mut around = [None; 4];
                 if cx > 0 {
-                    nb.push(&prev[cy * region.cw + cx - 1]);
+                    around[0] = Some(&prev[cy * region.cw + cx - 1]);
                 }
                 if cx + 1 < region.cw {
-                    nb.push(&prev[cy * region.cw + cx + 1]);
+                    around[1] = Some(&prev[cy * region.cw + cx + 1]);
                 }
                 if cy > 0 {
-                    nb.push(&prev[(cy - 1) * region.cw + cx]);
+                    around[2] = Some(&prev[(cy - 1) * region.cw + cx]);
                 }
                 if cy + 1 < region.ch {
-                    nb.push(&prev[(cy + 1) * region.cw + cx]);
+                    around[3] = Some(&prev[(cy + 1) * region.cw + cx]);
                 }
-                nb.retain(|c| c.valid && c.has_rho);
+                let mut known = [&me; 4];
+                let mut count = 0;
+                for c in around.into_iter().flatten().filter(|c| c.valid && c.has_rho) {
+                    known[count] = c;
+                    count += 1;
+                }
+                let nb = &known[..count];
                 if nb.is_empty() {
                     continue;
                 }
@@ -1186,7 +1222,7 @@ fn accept<const C: usize>(input: &ProfileInput<'_, C>, i: usize, k: usize, value
     let e_max = error.iter().fold(0.0f64, |m, v| m.max(*v));
     (e_max <= input.tolerance * scale).then_some(ProfilePixel {
         index: i,
-        light: k,
+        light: Some(k),
         value,
         error,
     })
@@ -1317,7 +1353,11 @@ fn thin_plan<const C: usize>(input: &ProfileInput<'_, C>, k: usize, i: usize, wi
         return None;
     }
     let b = light.sin_reach / gn;
-    if 2.0 * b >= widest || s0.abs() / gn > r * std::f64::consts::SQRT_2 + b {
+    // (No test of the distance to the line here: by the linearisation it
+    // refused pixels near a beam's apex whose window's corner the curved
+    // band does reach. The clipping below leaves no node where the band
+    // misses the window's square widened by 2b.)
+    if 2.0 * b >= widest {
         return None;
     }
     // Not near a light's image: the beam's apex must be outside the window.
