@@ -510,25 +510,18 @@ fn catmull_rom(t: f64) -> [f64; 4] {
 pub(crate) fn filter_by_profile<const C: usize>(input: &ProfileInput<'_, C>, candidates: &[usize]) -> (Vec<ProfilePixel>, Vec<usize>) {
     let (w, h) = (input.width, input.height);
     let r = input.filter.radius();
-    // The window's reach must stay inside the stencil (±1.5 px for
-    // Blender's), and end on a node (the trapezoid rule's last node, where
-    // the window is 0 with its derivatives).
-    let on_node = (r * NODES_PER_PX as f64 - (r * NODES_PER_PX as f64).round()).abs() < 1e-9;
-    if r <= 0.0 || r > 1.5 || !on_node || input.lights.iter().all(|l| l.table.is_none()) {
+    // (Without lights there is nothing to bound: the caller found no beam
+    // model, and the in-scatter may come from anything.)
+    if r <= 0.0 || input.lights.is_empty() {
         return (Vec::new(), candidates.to_vec());
     }
-    let near_image = |x: usize, y: usize| {
-        let (cx, cy) = (x as f64 + 0.5, y as f64 + 0.5);
-        input
-            .light_images
-            .iter()
-            .any(|&(ix, iy)| (ix - cx).abs() <= LIGHT_IMAGE_MARGIN && (iy - cy).abs() <= LIGHT_IMAGE_MARGIN)
-    };
     // A window that no light's band reaches (by the exact conservative
     // bound over its square) holds no in-scatter: here every light is a
     // beam, and a ray outside every band crosses no cone. Such pixels are
     // flagged beside a beam's edge (the flags are dilated by a pixel) and
-    // along the frame's border, where the stencils below cannot reach.
+    // along the frame's border, where the stencils below cannot reach;
+    // lights with shadow casters (no profile table) too: the bound is
+    // geometry alone.
     // The square in 4 × 4 parts: the bound is loose over a whole window
     // near a beam's apex, where the ray planes turn fast.
     const PARTS: usize = 4;
@@ -543,10 +536,6 @@ pub(crate) fn filter_by_profile<const C: usize>(input: &ProfileInput<'_, C>, can
         })
     });
     let candidates = &candidates[..];
-    // Beams thinner than a node spacing: along their centre line, one ray per node.
-    let norm = window_norm(&input.filter);
-    let mut thin_nodes = ThinNodes::new();
-    let thin = serve_thin_all(input, candidates, norm, THIN_BEAM_PX, &mut thin_nodes);
     let mut served: Vec<ProfilePixel> = outside
         .into_iter()
         .map(|index| ProfilePixel {
@@ -556,6 +545,24 @@ pub(crate) fn filter_by_profile<const C: usize>(input: &ProfileInput<'_, C>, can
             error: [0.0; 3],
         })
         .collect();
+    // The window's reach must stay inside the stencil (±1.5 px for
+    // Blender's), and end on a node (the trapezoid rule's last node, where
+    // the window is 0 with its derivatives).
+    let on_node = (r * NODES_PER_PX as f64 - (r * NODES_PER_PX as f64).round()).abs() < 1e-9;
+    if r > 1.5 || !on_node || input.lights.iter().all(|l| l.table.is_none()) {
+        return (served, candidates.to_vec());
+    }
+    let near_image = |x: usize, y: usize| {
+        let (cx, cy) = (x as f64 + 0.5, y as f64 + 0.5);
+        input
+            .light_images
+            .iter()
+            .any(|&(ix, iy)| (ix - cx).abs() <= LIGHT_IMAGE_MARGIN && (iy - cy).abs() <= LIGHT_IMAGE_MARGIN)
+    };
+    // Beams thinner than a node spacing: along their centre line, one ray per node.
+    let norm = window_norm(&input.filter);
+    let mut thin_nodes = ThinNodes::new();
+    let thin = serve_thin_all(input, candidates, norm, THIN_BEAM_PX, &mut thin_nodes);
     let mut open: Vec<usize> = Vec::new();
     for (p, &i) in thin.into_iter().zip(candidates) {
         match p {
