@@ -1474,20 +1474,20 @@ impl ThinPoint {
 /// cut by a surface, the band not closed around the line).
 fn thin_node<const C: usize>(input: &ProfileInput<'_, C>, k: usize, j: i64, widest: f64) -> Result<ThinNode, ThinMiss> {
     let light = &input.lights[k];
-    let table = light.table.as_ref().ok_or(ThinMiss::Fails)?;
+    light.table.as_ref().ok_or(ThinMiss::Fails)?;
     let (foot, dir) = thin_line(input, k).ok_or(ThinMiss::Fails)?;
     let normal = [dir[1], -dir[0]];
     let t = j as f64 * THIN_NODE_PX;
     let q = [foot[0] + t * dir[0], foot[1] + t * dir[1]];
     let (lo, hi) = light.band_across(q, normal).ok_or(ThinMiss::Fails)?;
-    let (mid, half) = (0.5 * (lo + hi), 0.5 * (hi - lo));
+    let half = 0.5 * (hi - lo);
     if half.is_nan() || half <= 0.0 {
         return Err(ThinMiss::Fails);
     }
     if 2.0 * half >= widest {
         return Err(ThinMiss::Wider);
     }
-    thin_node_across(input, k, table, q, normal, mid, half, lo, hi).ok_or(ThinMiss::Fails)
+    thin_node_across(input, k, q, normal, (lo, hi)).ok_or(ThinMiss::Fails)
 }
 
 /// The thin nodes computed so far, by light and index along its line.
@@ -1503,20 +1503,17 @@ enum ThinMiss {
 }
 
 /// [`thin_node`] once the band across the line at `q` is known: `[lo, hi]`
-/// along `normal`, `mid` and `half` its centre and half-width.
-#[allow(clippy::too_many_arguments)]
+/// along `normal`.
 fn thin_node_across<const C: usize>(
     input: &ProfileInput<'_, C>,
     k: usize,
-    table: &ProfileTable,
     q: [f64; 2],
     normal: [f64; 2],
-    mid: f64,
-    half: f64,
-    lo: f64,
-    hi: f64,
+    (lo, hi): (f64, f64),
 ) -> Option<ThinNode> {
     let light = &input.lights[k];
+    let table = light.table.as_ref()?;
+    let (mid, half) = (0.5 * (lo + hi), 0.5 * (hi - lo));
     let cam = input.cam;
     let at = |delta: f64| [q[0] + delta * normal[0], q[1] + delta * normal[1]];
     let s_at = |p: [f64; 2]| light.sin_psi_at(p[0], p[1]);
