@@ -2677,9 +2677,14 @@ fn render_channels<const C: usize, const K: usize>(
             |img: &[[f32; 3]]| -> Vec<[f32; 3]> { smooth.iter().map(|&i| second_order_filter_term(img, w, i, half_var)).collect() };
         let smooth_inscatter = with_filter_term(&inscatter);
         let smooth_lights: Vec<Vec<[f32; 3]>> = light_inscatter.iter().map(|img| with_filter_term(img)).collect();
+        // The stage counts every pixel integrated against the filter: those
+        // the beams' profiles served (at once, when the profile ends), then
+        // the lattice's, to the report's `edge_pixels`.
+        let served_first = std::sync::atomic::AtomicUsize::new(0);
         let filter_progress = |done: usize, total: usize| {
             if let Some(cb) = progress {
-                cb(RenderStage::PixelFilter, done, total);
+                let first = served_first.load(Ordering::Relaxed);
+                cb(RenderStage::PixelFilter, first + done, first + total);
             }
         };
         let job = filter::AdaptiveFilterJob {
@@ -2743,6 +2748,11 @@ fn render_channels<const C: usize, const K: usize>(
             edges.sort_unstable();
         }
         t = report.time("pixel_filter_profile", t);
+        let first = profiled.len() - both as usize;
+        if first > 0 {
+            served_first.store(first, Ordering::Relaxed);
+            filter_progress(0, edges.len());
+        }
         let (filtered, lattice) = filter::filter_adaptive(&job, &edges, &sample);
         if cancelled() {
             return Err(RenderError::Cancelled);
