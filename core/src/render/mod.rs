@@ -2812,7 +2812,7 @@ fn render_channels<const C: usize, const K: usize>(
         if !profiled.is_empty() {
             report.plan.computed(
                 format!("pixel filter from the beams' profiles on {} pixels", profiled.len()),
-                "the window integral of G·A(ψ): A the light's profile integrated across its cone along the great circle at the ray plane's angle ψ from the axis (a table per light, exact geometry per node), G = L/A from the centre samples (as ρ·G₀, G₀ the in-scatter density at the chord's middle in closed form), Catmull–Rom on ¼ px nodes, trapezoid rule; estimate: |Catmull–Rom − bilinear| and ρ's spread where extended, |¼ px − ½ px rule|, the samples' own errors and the table's; no lattice rays",
+                "the window integral of G·A(ψ): A the light's profile integrated across its cone along the great circle at the ray plane's angle ψ from the axis (a table per light, exact geometry per node), G = L/A from the centre samples (as ρ·G₀, G₀ the in-scatter density at the chord's middle in closed form), Catmull–Rom on ¼ px nodes, trapezoid rule; estimate: |Catmull–Rom − bilinear| and ρ's spread where extended, |¼ px − ½ px rule|, the samples' own errors and the table's; no lattice rays; a window no cone can reach (exact bound on the ray planes) is 0",
             );
             report.plan.left_out(
                 format!("lattice rays on {} pixels", profiled.len()),
