@@ -120,33 +120,14 @@ impl PixelFilter {
         }
     }
 
-    /// `weight(x₀ − m)` for `m = 0..N`: the window at one point for `N`
-    /// neighbouring pixel centres, one px apart. One sine and cosine for all
-    /// of them: with `c = cos(πx/w)`, the weight is a cubic in `c`, and
-    /// `cos(π(x₀ − m)/w)` follows from `cos(πx₀/w)`, `sin(πx₀/w)` by the
-    /// angle difference (equal to `weight` to rounding, ~1e-16).
-    pub fn weights_at_unit_steps<const N: usize>(&self, x0: f64) -> [f64; N] {
-        match *self {
-            PixelFilter::BlackmanHarris { width_px } => {
-                let [a0, a1, a2, a3] = BLACKMAN_HARRIS;
-                let (s0, c0) = (PI * x0 / width_px).sin_cos();
-                let (ss, cs) = (PI / width_px).sin_cos();
-                // (cos, sin) of π(x₀ − m)/w, rotated by −π/w per step.
-                let (mut c, mut s) = (c0, s0);
-                std::array::from_fn(|m| {
-                    let weight = if (x0 - m as f64).abs() > width_px {
-                        0.0
-                    } else {
-                        // The Chebyshev form of `weight` with its cosine −c.
-                        let c2 = 2.0 * c * c - 1.0;
-                        a0 + a1 * c + a2 * c2 + a3 * c * (2.0 * c2 - 1.0)
-                    };
-                    (c, s) = (c * cs + s * ss, s * cs - c * ss);
-                    weight
-                })
-            }
-            PixelFilter::None => std::array::from_fn(|m| self.weight(x0 - m as f64)),
-        }
+    /// The window at one point for neighbouring pixel centres one px
+    /// apart ([`UnitSteps::weights`]).
+    pub fn unit_steps(&self) -> UnitSteps {
+        let step = match *self {
+            PixelFilter::BlackmanHarris { width_px } => (PI / width_px).sin_cos(),
+            PixelFilter::None => (0.0, 1.0),
+        };
+        UnitSteps { filter: *self, step }
     }
 
     /// Half of the support, px (Cycles' doubled Blackman–Harris width: `width_px`).
@@ -187,6 +168,50 @@ impl PixelFilter {
                 w * w * (1.0 / 12.0 - (a1 - a2 / 4.0 + a3 / 9.0) / (2.0 * PI * PI * a0))
             }
             PixelFilter::None => 0.0,
+        }
+    }
+}
+
+/// [`PixelFilter::weight`] at one point for pixel centres one px apart,
+/// with the sine and cosine of the step `π/w` computed once.
+#[derive(Debug, Clone, Copy)]
+pub struct UnitSteps {
+    filter: PixelFilter,
+    /// `(sin, cos)` of `π/w`, `w` the half-width.
+    step: (f64, f64),
+}
+
+impl UnitSteps {
+    /// The filter's [`PixelFilter::radius`].
+    pub fn radius(&self) -> f64 {
+        self.filter.radius()
+    }
+
+    /// `weight(x₀ − m)` for `m = 0..N`. One sine and cosine for all of
+    /// them: with `c = cos(πx/w)` the weight is a cubic in `c`, and
+    /// `cos(π(x₀ − m)/w)` follows from `cos(πx₀/w)`, `sin(πx₀/w)` by the
+    /// angle difference (equal to `weight` to rounding, ~1e-16).
+    pub fn weights<const N: usize>(&self, x0: f64) -> [f64; N] {
+        match self.filter {
+            PixelFilter::BlackmanHarris { width_px } => {
+                let [a0, a1, a2, a3] = BLACKMAN_HARRIS;
+                let (s0, c0) = (PI * x0 / width_px).sin_cos();
+                let (ss, cs) = self.step;
+                // (cos, sin) of π(x₀ − m)/w, rotated by −π/w per step.
+                let (mut c, mut s) = (c0, s0);
+                std::array::from_fn(|m| {
+                    let weight = if (x0 - m as f64).abs() > width_px {
+                        0.0
+                    } else {
+                        // The Chebyshev form of `weight` with its cosine −c.
+                        let c2 = 2.0 * c * c - 1.0;
+                        a0 + a1 * c + a2 * c2 + a3 * c * (2.0 * c2 - 1.0)
+                    };
+                    (c, s) = (c * cs + s * ss, s * cs - c * ss);
+                    weight
+                })
+            }
+            PixelFilter::None => std::array::from_fn(|m| self.filter.weight(x0 - m as f64)),
         }
     }
 }
@@ -1022,14 +1047,14 @@ mod tests {
             let f = PixelFilter::BlackmanHarris { width_px };
             for i in 0..=400 {
                 let x0 = -3.0 + 9.0 * i as f64 / 400.0;
-                let got: [f64; 7] = f.weights_at_unit_steps(x0);
+                let got: [f64; 7] = f.unit_steps().weights(x0);
                 for (m, g) in got.iter().enumerate() {
                     let want = f.weight(x0 - m as f64);
                     assert!((g - want).abs() < 1e-14, "{width_px} px at {x0} − {m}: {g} vs {want}");
                 }
             }
         }
-        let none: [f64; 3] = PixelFilter::None.weights_at_unit_steps(1.0);
+        let none: [f64; 3] = PixelFilter::None.unit_steps().weights(1.0);
         assert_eq!(none, [0.0, 1.0, 0.0]);
     }
 }

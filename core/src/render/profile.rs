@@ -87,7 +87,7 @@
 //! (the conditions of [`super::smooth`], which supplies the planes and
 //! casters).
 
-use super::filter::PixelFilter;
+use super::filter::{PixelFilter, UnitSteps};
 use super::smooth::{Casters, Planes};
 use crate::geometry::camera::CameraRays;
 use crate::light::PointSource;
@@ -1451,10 +1451,10 @@ struct ThinPoint {
 }
 
 impl ThinPoint {
-    fn new(filter: &PixelFilter, p: [f64; 2], f: f64, z: f64) -> ThinPoint {
-        let r = filter.radius();
+    fn new(steps: &UnitSteps, p: [f64; 2], f: f64, z: f64) -> ThinPoint {
+        let r = steps.radius();
         let first = p.map(|v| (v - 0.5 - r).ceil() as i64 - 1);
-        let window = std::array::from_fn(|a| filter.weights_at_unit_steps(p[a] - (first[a] as f64 + 0.5)));
+        let window = std::array::from_fn(|a| steps.weights(p[a] - (first[a] as f64 + 0.5)));
         ThinPoint { f, z, first, window }
     }
 
@@ -1546,12 +1546,13 @@ fn thin_node_across<const C: usize>(
     if s0 != sp || s0 != sm {
         return None;
     }
+    let steps = input.filter.unit_steps();
     let points = across_nodes()
         .iter()
         .map(|&(sin_theta, w_cos_theta)| {
             let p = at(mid + half * sin_theta);
             let f = w_cos_theta * half * table.eval(s_at(p).abs());
-            ThinPoint::new(&input.filter, p, f, 2.0 * sin_theta)
+            ThinPoint::new(&steps, p, f, 2.0 * sin_theta)
         })
         .collect();
     Some(ThinNode {
