@@ -104,11 +104,8 @@ impl PixelFilter {
                 if x.abs() > width_px {
                     return 0.0;
                 }
-                let [a0, a1, a2, a3] = BLACKMAN_HARRIS;
-                // cos 2a and cos 3a from cos a (Chebyshev): one cosine per weight.
-                let c = (2.0 * PI * (x / (2.0 * width_px) + 0.5)).cos();
-                let c2 = 2.0 * c * c - 1.0;
-                a0 - a1 * c + a2 * c2 - a3 * c * (2.0 * c2 - 1.0)
+                // cos(2π(x/2w + ½)) = −cos(πx/w): one cosine per weight.
+                blackman_harris_of_cos(-(2.0 * PI * (x / (2.0 * width_px) + 0.5)).cos())
             }
             PixelFilter::None => {
                 if x == 0.0 {
@@ -172,6 +169,15 @@ impl PixelFilter {
     }
 }
 
+/// The Blackman–Harris window from `c = cos(πx/w)`, `w` the half-width:
+/// `a₀ + a₁c + a₂cos 2a + a₃cos 3a`, the multiple angles from `c`
+/// (Chebyshev), so one cosine per weight.
+fn blackman_harris_of_cos(c: f64) -> f64 {
+    let [a0, a1, a2, a3] = BLACKMAN_HARRIS;
+    let c2 = 2.0 * c * c - 1.0;
+    a0 + a1 * c + a2 * c2 + a3 * c * (2.0 * c2 - 1.0)
+}
+
 /// [`PixelFilter::weight`] at one point for pixel centres one px apart,
 /// with the sine and cosine of the step `π/w` computed once.
 #[derive(Debug, Clone, Copy)]
@@ -194,7 +200,6 @@ impl UnitSteps {
     pub fn weights<const N: usize>(&self, x0: f64) -> [f64; N] {
         match self.filter {
             PixelFilter::BlackmanHarris { width_px } => {
-                let [a0, a1, a2, a3] = BLACKMAN_HARRIS;
                 let (s0, c0) = (PI * x0 / width_px).sin_cos();
                 let (ss, cs) = self.step;
                 // (cos, sin) of π(x₀ − m)/w, rotated by −π/w per step.
@@ -203,9 +208,7 @@ impl UnitSteps {
                     let weight = if (x0 - m as f64).abs() > width_px {
                         0.0
                     } else {
-                        // The Chebyshev form of `weight` with its cosine −c.
-                        let c2 = 2.0 * c * c - 1.0;
-                        a0 + a1 * c + a2 * c2 + a3 * c * (2.0 * c2 - 1.0)
+                        blackman_harris_of_cos(c)
                     };
                     (c, s) = (c * cs + s * ss, s * cs - c * ss);
                     weight

@@ -1469,9 +1469,10 @@ impl ThinPoint {
     }
 }
 
-/// Node `j` of light `k`'s centre line, or `None` where the model does
-/// not hold there (an exact ray off the beam's core or its surface, a chord
-/// cut by a surface, the band not closed around the line).
+/// Node `j` of light `k`'s centre line; [`ThinMiss::Wider`] where the band
+/// is `widest` px or wider there, [`ThinMiss::Fails`] where the model does
+/// not hold (an exact ray off the beam's core or its surface, a chord cut
+/// by a surface, the band not closed around the line).
 fn thin_node<const C: usize>(input: &ProfileInput<'_, C>, k: usize, j: i64, widest: f64) -> Result<ThinNode, ThinMiss> {
     let light = &input.lights[k];
     light.table.as_ref().ok_or(ThinMiss::Fails)?;
