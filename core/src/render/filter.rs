@@ -72,7 +72,6 @@
 //! and those pixels are counted (`edge_pixels_not_converged`). The window is
 //! normalised by the rule's own weight sum, so a constant image is exact.
 
-use rayon::prelude::*;
 use rustc_hash::FxHashMap as HashMap;
 use serde::{Deserialize, Serialize};
 use std::f64::consts::PI;
@@ -1066,47 +1065,41 @@ pub(crate) fn filter_adaptive<S: FilterSample>(
     // keeps one lattice and reuses its buffers from tile to tile (a sample
     // is ~1 kB: fresh buffers per tile cost more in page faults than the
     // view rays).
-    let next_tile = std::sync::atomic::AtomicUsize::new(0);
-    let workers = rayon::current_num_threads().clamp(1, groups.len());
-    let results: Vec<(Vec<FilteredPixel<S>>, AdaptiveFilterStats)> = (0..workers)
-        .into_par_iter()
-        .map(|_| {
-            let mut lattice = TileLattice {
-                job,
-                table: Moments {
-                    shared: &table,
-                    fine: Default::default(),
-                },
-                sample,
-                points: HashMap::default(),
-                samples: Vec::with_capacity(4096),
-                cells: Vec::with_capacity(4096),
-                roots: HashMap::default(),
-                scratch: Vec::with_capacity(4096),
-            };
-            let mut out = Vec::new();
-            let mut stats = AdaptiveFilterStats::default();
-            loop {
-                let g = next_tile.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-                if g >= groups.len() || job.cancel.is_some_and(|c| c.load(std::sync::atomic::Ordering::Relaxed)) {
-                    break;
-                }
-                let pixels = &groups[g];
-                lattice.points.clear();
-                lattice.samples.clear();
-                lattice.cells.clear();
-                lattice.roots.clear();
-                out.extend(lattice.run(pixels));
-                let mut done = pixels_done.lock().unwrap_or_else(|e| e.into_inner());
-                *done += pixels.len();
-                (job.progress)(*done, flagged.len());
-                drop(done);
-                stats.samples += lattice.samples.len() as u64;
-                stats.cells += lattice.cells.len() as u64;
+    let results: Vec<(Vec<FilteredPixel<S>>, AdaptiveFilterStats)> = super::queued(
+        &groups,
+        || TileLattice {
+            job,
+            table: Moments {
+                shared: &table,
+                fine: Default::default(),
+            },
+            sample,
+            points: HashMap::default(),
+            samples: Vec::with_capacity(4096),
+            cells: Vec::with_capacity(4096),
+            roots: HashMap::default(),
+            scratch: Vec::with_capacity(4096),
+        },
+        |lattice, pixels| {
+            if job.cancel.is_some_and(|c| c.load(std::sync::atomic::Ordering::Relaxed)) {
+                return (Vec::new(), AdaptiveFilterStats::default());
             }
+            lattice.points.clear();
+            lattice.samples.clear();
+            lattice.cells.clear();
+            lattice.roots.clear();
+            let out = lattice.run(pixels);
+            let mut done = pixels_done.lock().unwrap_or_else(|e| e.into_inner());
+            *done += pixels.len();
+            (job.progress)(*done, flagged.len());
+            drop(done);
+            let stats = AdaptiveFilterStats {
+                samples: lattice.samples.len() as u64,
+                cells: lattice.cells.len() as u64,
+            };
             (out, stats)
-        })
-        .collect();
+        },
+    );
     let mut stats = AdaptiveFilterStats::default();
     let mut out = Vec::with_capacity(flagged.len());
     for (px, s) in results {

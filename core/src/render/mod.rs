@@ -285,6 +285,35 @@ fn worker_pool(threads: usize) -> Result<Arc<rayon::ThreadPool>, RenderError> {
     Ok(pool)
 }
 
+/// `work` on every item, results in the items' order; the workers take the
+/// items in that order from one queue, each with its own state from `init`.
+/// Rayon's splitting of an indexed range does not keep the order, and with
+/// a few uneven tiles sorted longest first that order is the schedule: the
+/// narrow beam's profile tiles at 96×54 (0.33 ms for the largest of eight,
+/// 0.89 ms in all) took 0.51 ms on two threads as split by rayon.
+pub(crate) fn queued<T: Sync, S, R: Send>(items: &[T], init: impl Fn() -> S + Sync, work: impl Fn(&mut S, &T) -> R + Sync) -> Vec<R> {
+    let next = std::sync::atomic::AtomicUsize::new(0);
+    let workers = rayon::current_num_threads().clamp(1, items.len().max(1));
+    let done: Vec<Vec<(usize, R)>> = (0..workers)
+        .into_par_iter()
+        .map(|_| {
+            let mut state = init();
+            let mut out = Vec::new();
+            loop {
+                let i = next.fetch_add(1, Ordering::Relaxed);
+                let Some(item) = items.get(i) else { break };
+                out.push((i, work(&mut state, item)));
+            }
+            out
+        })
+        .collect();
+    let mut slots: Vec<Option<R>> = std::iter::repeat_with(|| None).take(items.len()).collect();
+    for (i, r) in done.into_iter().flatten() {
+        slots[i] = Some(r);
+    }
+    slots.into_iter().flatten().collect()
+}
+
 /// Bytes per pixel a render holds at least: the in-scatter, transmittance,
 /// sun transmittance and error layers and per stage light two more (RGB f32,
 /// 12 bytes each), depth, and the pixel's working data.

@@ -585,9 +585,9 @@ pub(crate) fn filter_by_profile<const C: usize>(input: &ProfileInput<'_, C>, can
             start = k;
         }
     }
-    // Fullest tiles first, so that the threads finish together.
+    // Fullest tiles first, taken in that order, so that the threads finish together.
     tiles.sort_by_key(|t| std::cmp::Reverse(t.len()));
-    let results: Vec<(Vec<ProfilePixel>, Vec<usize>)> = tiles.par_iter().with_max_len(1).map(|tile| serve_tile(input, tile)).collect();
+    let results: Vec<(Vec<ProfilePixel>, Vec<usize>)> = super::queued(&tiles, || (), |_, tile| serve_tile(input, tile));
     for (s, left) in results {
         served.extend(s);
         rest.extend(left);
