@@ -657,6 +657,8 @@ fn serve_tile<const C: usize>(input: &ProfileInput<'_, C>, pixels: &[usize]) -> 
                 };
                 nx * ny
             ],
+            rows: vec![None; (x1 - x0) * ny],
+            ny,
         };
         let mut still = Vec::new();
         for &i in &left {
@@ -1009,6 +1011,26 @@ struct Nodes {
     /// 0: not computed, 1: the model fails there, 2: `values` holds it.
     state: Vec<u8>,
     values: Vec<NodeValue>,
+    /// The window's sums along x over one node row, per pixel column of
+    /// the tile and node row (`(x − x0)·ny + row`): `None` until computed.
+    rows: Vec<Option<RowSum>>,
+    ny: usize,
+}
+
+/// One node row of a window, summed along x with the window's weights
+/// (`Σ wₓ·v` for the fine and the coarse rule, the node estimates, the
+/// weights): pixels of one column share their rows, so a window sums 13
+/// of these instead of 169 nodes.
+#[derive(Clone, Copy)]
+struct RowSum {
+    /// Some node of the row with a non-zero weight fails the model.
+    fails: bool,
+    fine: [f64; 3],
+    coarse: [f64; 3],
+    est: [f64; 3],
+    g_max: f64,
+    w_fine: f64,
+    w_coarse: f64,
 }
 
 fn node_value<const C: usize>(
@@ -1103,6 +1125,70 @@ fn node_value<const C: usize>(
     Some(out)
 }
 
+/// Node row `ny` of the window of the pixels in column `x`, summed along x
+/// ([`RowSum`]); the nodes are computed on first use and kept.
+#[allow(clippy::too_many_arguments)]
+fn row_sum<const C: usize>(
+    input: &ProfileInput<'_, C>,
+    k: usize,
+    light: &BeamLight,
+    region: &Region,
+    centres: &[Centre],
+    nodes: &mut Nodes,
+    weights: &[f64],
+    x: usize,
+    ny: usize,
+) -> RowSum {
+    let j_max = weights.len() / 2;
+    let per_px = NODES_PER_PX as f64;
+    let mut row = RowSum {
+        fails: false,
+        fine: [0.0; 3],
+        coarse: [0.0; 3],
+        est: [0.0; 3],
+        g_max: 0.0,
+        w_fine: 0.0,
+        w_coarse: 0.0,
+    };
+    let py = nodes.y0 as f64 + 0.5 + (ny as f64 - j_max as f64) / per_px;
+    for (jx, wx) in weights.iter().enumerate() {
+        if *wx == 0.0 {
+            continue;
+        }
+        let nx = (x - nodes.x0) * NODES_PER_PX + jx;
+        let slot = ny * nodes.nx + nx;
+        if nodes.state[slot] == 0 {
+            let px = x as f64 + 0.5 + (jx as f64 - j_max as f64) / per_px;
+            match node_value(input, k, light, region, centres, px, py) {
+                Some(v) => {
+                    nodes.values[slot] = v;
+                    nodes.state[slot] = 2;
+                }
+                None => nodes.state[slot] = 1,
+            }
+        }
+        if nodes.state[slot] == 1 {
+            row.fails = true;
+            return row;
+        }
+        let node = &nodes.values[slot];
+        let coarse_node = (jx + j_max).is_multiple_of(2);
+        row.w_fine += wx;
+        if coarse_node {
+            row.w_coarse += wx;
+        }
+        row.g_max = row.g_max.max(node.g_max);
+        for ch in 0..3 {
+            row.fine[ch] += wx * node.value[ch];
+            if coarse_node {
+                row.coarse[ch] += wx * node.value[ch];
+            }
+            row.est[ch] += wx * node.error[ch];
+        }
+    }
+    row
+}
+
 #[allow(clippy::too_many_arguments)]
 fn serve_pixel<const C: usize>(
     input: &ProfileInput<'_, C>,
@@ -1158,7 +1244,6 @@ fn serve_pixel<const C: usize>(
         return None;
     }
     let j_max = weights.len() / 2;
-    let per_px = NODES_PER_PX as f64;
     let (mut fine, mut coarse, mut est) = ([0.0f64; 3], [0.0f64; 3], [0.0f64; 3]);
     let (mut w_fine, mut w_coarse) = (0.0f64, 0.0f64);
     let mut g_max = 0.0f64;
@@ -1167,42 +1252,30 @@ fn serve_pixel<const C: usize>(
             continue;
         }
         let ny = (y - nodes.y0) * NODES_PER_PX + jy;
-        for (jx, wx) in weights.iter().enumerate() {
-            if *wx == 0.0 {
-                continue;
+        let row = match nodes.rows[(x - nodes.x0) * nodes.ny + ny] {
+            Some(row) => row,
+            None => {
+                let row = row_sum(input, k, light, region, centres, nodes, weights, x, ny);
+                nodes.rows[(x - nodes.x0) * nodes.ny + ny] = Some(row);
+                row
             }
-            let nx = (x - nodes.x0) * NODES_PER_PX + jx;
-            let slot = ny * nodes.nx + nx;
-            if nodes.state[slot] == 0 {
-                let px = x as f64 + 0.5 + (jx as f64 - j_max as f64) / per_px;
-                let py = y as f64 + 0.5 + (jy as f64 - j_max as f64) / per_px;
-                match node_value(input, k, light, region, centres, px, py) {
-                    Some(v) => {
-                        nodes.values[slot] = v;
-                        nodes.state[slot] = 2;
-                    }
-                    None => nodes.state[slot] = 1,
-                }
+        };
+        if row.fails {
+            return None;
+        }
+        // The coarse rule: every other node, centred on the pixel.
+        let coarse_row = (jy + j_max).is_multiple_of(2);
+        w_fine += wy * row.w_fine;
+        if coarse_row {
+            w_coarse += wy * row.w_coarse;
+        }
+        g_max = g_max.max(row.g_max);
+        for ch in 0..3 {
+            fine[ch] += wy * row.fine[ch];
+            if coarse_row {
+                coarse[ch] += wy * row.coarse[ch];
             }
-            if nodes.state[slot] == 1 {
-                return None;
-            }
-            let node = &nodes.values[slot];
-            let wt = wx * wy;
-            // The coarse rule: every other node, centred on the pixel.
-            let coarse_node = (jx + j_max).is_multiple_of(2) && (jy + j_max).is_multiple_of(2);
-            w_fine += wt;
-            if coarse_node {
-                w_coarse += wt;
-            }
-            g_max = g_max.max(node.g_max);
-            for ch in 0..3 {
-                fine[ch] += wt * node.value[ch];
-                if coarse_node {
-                    coarse[ch] += wt * node.value[ch];
-                }
-                est[ch] += wt * node.error[ch];
-            }
+            est[ch] += wy * row.est[ch];
         }
     }
     if !(w_fine > 0.0 && w_coarse > 0.0) {
