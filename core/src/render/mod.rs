@@ -2673,7 +2673,7 @@ fn render_channels<const C: usize, const K: usize>(
                 .enumerate()
                 .map(|(k, p)| {
                     let servable = !matches!(casters.get(k), Some(smooth::Casters::Any) | None);
-                    profile::BeamLight::new(&p.light, &cam, p.casts_shadows, servable)
+                    profile::BeamLight::new(&p.light, &cam, p.casts_shadows, servable, tolerance)
                 })
                 .collect::<Option<Vec<_>>>()
                 .unwrap_or_default()

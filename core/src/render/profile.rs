@@ -113,8 +113,17 @@ const MIN_BEAM_NODES: f64 = 8.0;
 const LIGHT_IMAGE_MARGIN: f64 = 3.5;
 /// Tiles of candidate pixels share their nodes, px a side.
 const TILE: usize = 16;
-/// Profile table cells (uniform in `q = √(1 − sin ψ / sin ψ_max)`, dense at the edge).
+/// Profile table cells (uniform in `q = √(1 − sin ψ / sin ψ_max)`, dense at
+/// the edge): the fine table, and the coarse one tried first where the
+/// tolerance is loose.
 const TABLE_CELLS: usize = 256;
+const COARSE_TABLE_CELLS: usize = 64;
+/// The coarse table is kept when its error, relative to a known centre's
+/// `A` (`error / (KNOWN_FRACTION · peak)`, the share it adds to every
+/// profile pixel's estimate), is at most this fraction of the tolerance.
+/// (Narrow beam: 64 cells 8.7e-4 of the peak, 1.7e-2 relative; 256 cells
+/// 6.6e-5 and 1.3e-3. The table was 5 % of a 96×54 render at tolerance 0.5.)
+const COARSE_TABLE_SHARE: f64 = 0.05;
 
 /// `A(ψ)` of one light, tabulated in `q = √(1 − s/s_max)`, `s = sin ψ`: a
 /// hard cone edge makes `A` a square root of the distance to the edge,
@@ -126,6 +135,8 @@ pub(crate) struct ProfileTable {
     /// The profile `I(cos θ)` (the light's `factor_cos`), for partial chords.
     profile: std::sync::Arc<dyn Fn(f64) -> f64 + Send + Sync>,
     values: Vec<f64>,
+    /// Cells (`values.len() − 1`).
+    cells: usize,
     /// Largest difference between the table's interpolant and `A` at its
     /// cells' midpoints, absolute.
     pub error: f64,
@@ -134,8 +145,18 @@ pub(crate) struct ProfileTable {
 }
 
 impl ProfileTable {
-    /// The table of an axial light ([`PointSource::is_axial`], `cos_reach > 0`).
-    pub(crate) fn new<const C: usize>(light: &PointSource<C>) -> ProfileTable {
+    /// The table of an axial light ([`PointSource::is_axial`], `cos_reach > 0`)
+    /// for renders at relative tolerance `tolerance`: [`COARSE_TABLE_CELLS`]
+    /// where that is within [`COARSE_TABLE_SHARE`] of it, else [`TABLE_CELLS`].
+    pub(crate) fn new<const C: usize>(light: &PointSource<C>, tolerance: f64) -> ProfileTable {
+        let coarse = Self::with_cells(light, COARSE_TABLE_CELLS);
+        if coarse.error <= COARSE_TABLE_SHARE * tolerance * KNOWN_FRACTION * coarse.peak {
+            return coarse;
+        }
+        Self::with_cells(light, TABLE_CELLS)
+    }
+
+    fn with_cells<const C: usize>(light: &PointSource<C>, cells: usize) -> ProfileTable {
         let cos_reach = light.cos_reach;
         let shape = light.clone();
         let profile: std::sync::Arc<dyn Fn(f64) -> f64 + Send + Sync> = std::sync::Arc::new(move |c| shape.factor_cos(c));
@@ -169,14 +190,11 @@ impl ProfileTable {
             2.0 * total
         };
         let s_of = |q: f64| s_max * (1.0 - q * q);
-        let values: Vec<f64> = (0..=TABLE_CELLS)
-            .into_par_iter()
-            .map(|i| abel(s_of(i as f64 / TABLE_CELLS as f64)))
-            .collect();
-        let error = (0..TABLE_CELLS)
+        let values: Vec<f64> = (0..=cells).into_par_iter().map(|i| abel(s_of(i as f64 / cells as f64))).collect();
+        let error = (0..cells)
             .into_par_iter()
             .map(|i| {
-                let mid = abel(s_of((i as f64 + 0.5) / TABLE_CELLS as f64));
+                let mid = abel(s_of((i as f64 + 0.5) / cells as f64));
                 (mid - 0.5 * (values[i] + values[i + 1])).abs()
             })
             .reduce(|| 0.0f64, f64::max);
@@ -185,8 +203,9 @@ impl ProfileTable {
             cos_reach,
             kinks,
             profile,
-            peak: values[TABLE_CELLS],
+            peak: values[cells],
             values,
+            cells,
             error,
         }
     }
@@ -242,8 +261,8 @@ impl ProfileTable {
         if s.is_nan() || s >= self.s_max {
             return 0.0;
         }
-        let q = (1.0 - s / self.s_max).max(0.0).sqrt() * TABLE_CELLS as f64;
-        let i = (q as usize).min(TABLE_CELLS - 1);
+        let q = (1.0 - s / self.s_max).max(0.0).sqrt() * self.cells as f64;
+        let i = (q as usize).min(self.cells - 1);
         let f = q - i as f64;
         self.values[i] * (1.0 - f) + self.values[i + 1] * f
     }
@@ -287,7 +306,13 @@ impl BeamLight {
     /// only another light's cone to keep clear of, and builds no table).
     /// `None` for a camera without ray planes affine in the image point (an
     /// equirectangular one, which has no pixel filter either).
-    pub(crate) fn new<const C: usize>(light: &PointSource<C>, cam: &CameraRays, casts_shadows: bool, servable: bool) -> Option<BeamLight> {
+    pub(crate) fn new<const C: usize>(
+        light: &PointSource<C>,
+        cam: &CameraRays,
+        casts_shadows: bool,
+        servable: bool,
+        tolerance: f64,
+    ) -> Option<BeamLight> {
         let axis = light.frame.axis;
         let (d0, dx, dy) = cam.affine_direction()?;
         let w = cam.position - light.position;
@@ -307,7 +332,7 @@ impl BeamLight {
             axis,
             sin_reach: (1.0 - light.cos_reach * light.cos_reach).max(0.0).sqrt(),
             light_path_extinction: casts_shadows,
-            table: servable.then(|| ProfileTable::new(light)),
+            table: servable.then(|| ProfileTable::new(light, tolerance)),
             image,
         })
     }
@@ -1777,7 +1802,7 @@ mod tests {
             .lights
             .iter()
             .map(|l| match l {
-                Light::Spot(s) => BeamLight::new(&PointSource::<3>::from_spot(s, [1.0; 3], None), &cam, true, true).unwrap(),
+                Light::Spot(s) => BeamLight::new(&PointSource::<3>::from_spot(s, [1.0; 3], None), &cam, true, true, 1e-4).unwrap(),
                 _ => unreachable!(),
             })
             .collect();
