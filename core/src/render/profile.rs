@@ -686,9 +686,17 @@ fn serve_tile<const C: usize>(input: &ProfileInput<'_, C>, pixels: &[usize]) -> 
             rows: vec![None; (x1 - x0) * ny],
             ny,
         };
+        let tile = TileLight {
+            input,
+            k,
+            light,
+            region: &region,
+            centres: &centres,
+            weights: &weights,
+        };
         let mut still = Vec::new();
         for &i in &left {
-            match serve_pixel(input, k, light, &region, &centres, &mut nodes, &weights, i) {
+            match serve_pixel(&tile, &mut nodes, i) {
                 Some(p) => served.push(p),
                 None => still.push(i),
             }
@@ -1151,20 +1159,21 @@ fn node_value<const C: usize>(
     Some(out)
 }
 
+/// What a tile's windows read for light `k`: the light, the tile's centres
+/// (over `region`) and the window's node weights.
+struct TileLight<'a, const C: usize> {
+    input: &'a ProfileInput<'a, C>,
+    k: usize,
+    light: &'a BeamLight,
+    region: &'a Region,
+    centres: &'a [Centre],
+    weights: &'a [f64],
+}
+
 /// Node row `ny` of the window of the pixels in column `x`, summed along x
 /// ([`RowSum`]); the nodes are computed on first use and kept.
-#[allow(clippy::too_many_arguments)]
-fn row_sum<const C: usize>(
-    input: &ProfileInput<'_, C>,
-    k: usize,
-    light: &BeamLight,
-    region: &Region,
-    centres: &[Centre],
-    nodes: &mut Nodes,
-    weights: &[f64],
-    x: usize,
-    ny: usize,
-) -> RowSum {
+fn row_sum<const C: usize>(tile: &TileLight<'_, C>, nodes: &mut Nodes, x: usize, ny: usize) -> RowSum {
+    let weights = tile.weights;
     let j_max = weights.len() / 2;
     let per_px = NODES_PER_PX as f64;
     let mut row = RowSum {
@@ -1185,7 +1194,7 @@ fn row_sum<const C: usize>(
         let slot = ny * nodes.nx + nx;
         if nodes.state[slot] == 0 {
             let px = x as f64 + 0.5 + (jx as f64 - j_max as f64) / per_px;
-            match node_value(input, k, light, region, centres, px, py) {
+            match node_value(tile.input, tile.k, tile.light, tile.region, tile.centres, px, py) {
                 Some(v) => {
                     nodes.values[slot] = v;
                     nodes.state[slot] = 2;
@@ -1215,17 +1224,15 @@ fn row_sum<const C: usize>(
     row
 }
 
-#[allow(clippy::too_many_arguments)]
-fn serve_pixel<const C: usize>(
-    input: &ProfileInput<'_, C>,
-    k: usize,
-    light: &BeamLight,
-    region: &Region,
-    centres: &[Centre],
-    nodes: &mut Nodes,
-    weights: &[f64],
-    i: usize,
-) -> Option<ProfilePixel> {
+fn serve_pixel<const C: usize>(tile: &TileLight<'_, C>, nodes: &mut Nodes, i: usize) -> Option<ProfilePixel> {
+    let TileLight {
+        input,
+        k,
+        light,
+        region,
+        centres,
+        weights,
+    } = *tile;
     let table = light.table.as_ref()?;
     let w = input.width;
     let (x, y) = (i % w, i / w);
@@ -1281,7 +1288,7 @@ fn serve_pixel<const C: usize>(
         let row = match nodes.rows[(x - nodes.x0) * nodes.ny + ny] {
             Some(row) => row,
             None => {
-                let row = row_sum(input, k, light, region, centres, nodes, weights, x, ny);
+                let row = row_sum(tile, nodes, x, ny);
                 nodes.rows[(x - nodes.x0) * nodes.ny + ny] = Some(row);
                 row
             }
