@@ -258,7 +258,10 @@ const AT_LIGHT_REACH: i64 = 3;
 /// A cell is flat when its corners spread by at most this fraction of the tolerance.
 const FLAT_FRACTION: f64 = 0.25;
 /// A round splits the pending cells with the largest errors until the rest
-/// hold at most this share of the pixel's error budget.
+/// hold at most this share of the pixel's error budget. (0.75 took 6 % fewer
+/// rays on the demo stages at equal tolerance, but the box occluder's error
+/// against Cycles at 96×54, tolerance 0.2, rose from 0.864 to 0.996 %, and its
+/// time at 1 % error did not fall.)
 const UNSPLIT_SHARE: f64 = 0.5;
 /// Flagged pixels are grouped into tiles of this many pixels a side; each tile
 /// has its own lattice (shared points at tile borders are traced twice), which
