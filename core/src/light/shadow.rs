@@ -247,23 +247,11 @@ struct GridTriangle {
 impl GridTriangle {
     /// `None` for a triangle with a non-finite corner or whose projection
     /// misses the grid.
-    #[allow(clippy::too_many_arguments)]
-    fn new(
-        a: DVec3,
-        b: DVec3,
-        c: DVec3,
-        light: DVec3,
-        axis: DVec3,
-        x: DVec3,
-        y: DVec3,
-        half: f64,
-        inv_cell: f64,
-        margin: f64,
-        n: usize,
-    ) -> Option<GridTriangle> {
+    fn new(a: DVec3, b: DVec3, c: DVec3, grid: &VisibilityGrid, margin: f64) -> Option<GridTriangle> {
         if !(a.is_finite() && b.is_finite() && c.is_finite()) {
             return None;
         }
+        let (light, axis, x, y, half, n) = (grid.light, grid.axis, grid.x, grid.y, grid.half, grid.n);
         let d_min = (closest_on_triangle(light, a, b, c) - light).length() * (1.0 - 1e-9);
         let nrm = (b - a).cross(c - a);
         let plane = nrm.try_normalize().map(|nu| {
@@ -300,7 +288,7 @@ impl GridTriangle {
             lo_y = lo_y.min(py);
             hi_y = hi_y.max(py);
         }
-        let index = |v: f64| ((v + half) * inv_cell).floor();
+        let index = |v: f64| ((v + half) * grid.inv_cell).floor();
         let (i0, i1) = (index(lo_x - margin).max(0.0), index(hi_x + margin).min(n as f64 - 1.0));
         let (j0, j1) = (index(lo_y - margin).max(0.0), index(hi_y + margin).min(n as f64 - 1.0));
         if !(i0 <= i1 && j0 <= j1) {
@@ -385,7 +373,7 @@ impl VisibilityGrid {
                 ) else {
                     return None;
                 };
-                GridTriangle::new(*a, *b, *c, light, axis, x, y, half, g.inv_cell, margin, n)
+                GridTriangle::new(*a, *b, *c, &g, margin)
             })
             .collect();
         let band_rows = n.div_ceil(4 * rayon::current_num_threads().max(1)).max(1);
