@@ -288,9 +288,11 @@ fn worker_pool(threads: usize) -> Result<Arc<rayon::ThreadPool>, RenderError> {
 /// `work` on every item, results in the items' order; the workers take the
 /// items in that order from one queue, each with its own state from `init`.
 /// Rayon's splitting of an indexed range does not keep the order, and with
-/// a few uneven tiles sorted longest first that order is the schedule: the
-/// narrow beam's profile tiles at 96×54 (0.33 ms for the largest of eight,
-/// 0.89 ms in all) took 0.51 ms on two threads as split by rayon.
+/// a few uneven tiles sorted longest first that order is the schedule. The
+/// lattice needs it (box occluder at 192×108, its light's tile first: 9.8 ms
+/// as split by rayon, 7.6–8.0 ms from the queue); for the narrow beam's
+/// profile tiles at 96×54 (0.33 ms for the largest of eight, 0.89 ms in
+/// all) the queue's gain was within the noise.
 pub(crate) fn queued<T: Sync, S, R: Send>(items: &[T], init: impl Fn() -> S + Sync, work: impl Fn(&mut S, &T) -> R + Sync) -> Vec<R> {
     let next = std::sync::atomic::AtomicUsize::new(0);
     let workers = rayon::current_num_threads().clamp(1, items.len().max(1));

@@ -118,6 +118,7 @@ const TILE: usize = 16;
 /// the edge): the fine table, and the coarse one tried first where the
 /// tolerance is loose.
 const TABLE_CELLS: usize = 256;
+/// The coarse table's cells (a quarter of [`TABLE_CELLS`]: its grid points are the fine one's).
 const COARSE_TABLE_CELLS: usize = 64;
 /// The coarse table is kept when its error, relative to a known centre's
 /// `A` (`error / (KNOWN_FRACTION · peak)`, the share it adds to every
