@@ -1017,6 +1017,29 @@ def test_blender_output_size_spot_limits_and_camera_axis(addon: None) -> None:
     assert any("camera 'Cam': its transform shears its axes" in n for n in built.notes)
 
 
+def test_clip_end_note_uses_depth_along_the_view_axis(addon: None) -> None:
+    """Cycles ends a perspective camera's rays at the depth Clip End (its kernel scales each
+    ray's length by 1/cos of its angle to the view axis): a wide backdrop whose corners lie
+    farther than Clip End but nearer in depth is shown whole, and gets no note; a mesh
+    deeper than Clip End does."""
+    objs = make_scene()
+    sc = bpy.context.scene
+    objs["camera"].data.clip_end = 11.0
+
+    def plane(name: str, y: float, half_width: float) -> None:
+        me = bpy.data.meshes.new(name)
+        me.from_pydata([(-half_width, y, 0.0), (half_width, y, 0.0), (half_width, y, 3.0)], [], [(0, 1, 2)])
+        sc.collection.objects.link(bpy.data.objects.new(name, me))
+
+    plane("Backdrop", 0.5, 8.0)  # corners 12.9 m away, depth ≤ 10.6 m
+    plane("Far wall", 3.0, 1.0)  # depth ≈ 13 m
+    bpy.context.view_layer.update()
+    notes = [n for n in _built().notes if "past its Clip End" in n]
+    assert not any(n.startswith("Backdrop:") for n in notes), notes
+    assert any(n.startswith("Far wall:") and "depth along its view axis" in n for n in notes), notes
+    assert not any(n.startswith("Cube:") for n in notes), notes
+
+
 def test_a_light_group_of_the_user_is_kept(addon: None, tmp_path: Path) -> None:
     """Applying the results used to overwrite a light's own light group with tyndall_<light>."""
     objs = make_scene()

@@ -324,14 +324,20 @@ def _left_out(notes: list[str]) -> str:
     return f" (left out: {'; '.join(notes)})" if notes else ""
 
 
-def _farthest_point(mesh: MeshData, eye: np.ndarray) -> float:
-    """Largest distance from ``eye`` to a vertex of ``mesh`` in world space, Blender units."""
+def _farthest_depth(mesh: MeshData, camera: CameraData) -> float:
+    """How far ``mesh`` reaches along the view axis of the perspective ``camera`` (its −Z
+    column), Blender units: Cycles ends a perspective camera's rays at the depth Clip End,
+    not the distance (``camera_sample_perspective`` scales each ray's length by 1/cos of its
+    angle to the axis). The largest over the vertices in world space (a triangle's deepest
+    point is a vertex)."""
     p = np.asarray(mesh.positions, dtype=np.float64).reshape(-1, 3)
     m = np.asarray(mesh.matrix, dtype=np.float64)
     if len(p) == 0:
         return 0.0
     world = p @ m[:3, :3].T + m[:3, 3]
-    return float(np.sqrt(((world - eye) ** 2).sum(axis=1)).max())
+    c = np.asarray(camera.matrix, dtype=np.float64)
+    axis = -c[:3, 2]
+    return float(((world - c[:3, 3]) @ (axis / np.linalg.norm(axis))).max())
 
 
 def build_scene(data: SceneData) -> BuiltScene:
@@ -388,15 +394,15 @@ def build_scene(data: SceneData) -> BuiltScene:
         raise SceneInputError("the world volume has zero density: nothing to compute")
 
     meshes = []
-    eye = np.array([float(data.camera.matrix[r][3]) for r in range(3)])
     for mesh in data.meshes:
         if len(mesh.triangles) == 0:
             continue
-        far = _farthest_point(mesh, eye)
+        far = _farthest_depth(mesh, data.camera)
         if far > data.camera.clip_end and mesh.camera:
             notes.append(
-                f"{mesh.name}: reaches {far:.4g} from the camera, past its Clip End ({data.camera.clip_end:.4g}): "
-                "Cycles does not show surfaces there, Tyndall does (in both the haze goes on past it)"
+                f"{mesh.name}: reaches {far:.4g} from the camera (depth along its view axis), past its Clip End "
+                f"({data.camera.clip_end:.4g}): Cycles does not show surfaces there, Tyndall does "
+                "(in both the haze goes on past it)"
             )
         entry: dict[str, Any] = {
             "name": mesh.name,
