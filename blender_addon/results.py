@@ -82,8 +82,9 @@ def setup_lightgroups(
 
     A light already in a light group of the user's keeps it (it is named in ``kept``) and
     gets no per-light composite: its surface light is dimmed by the view transmittance.
+    Light groups of ours (``tyndall_…``) that no object or world of the scene uses any more,
+    such as a renamed or deleted light's, are removed from every view layer.
     """
-    view_layer = scene.view_layers[0] if scene.view_layers else None
     out = {}
     for obj_name, layer in light_layers.items():
         obj = scene.objects.get(obj_name)
@@ -99,7 +100,13 @@ def setup_lightgroups(
             if vl.lightgroups.get(lg) is None:
                 vl.lightgroups.add(name=lg)
         out[obj_name] = lg
-    del view_layer
+    used = {obj.lightgroup for obj in scene.objects if obj.lightgroup}
+    if scene.world is not None and scene.world.lightgroup:
+        used.add(scene.world.lightgroup)
+    for vl in scene.view_layers:
+        stale = [g for g in vl.lightgroups if g.name.startswith(LIGHTGROUP_PREFIX) and g.name not in used]
+        for g in stale:
+            vl.lightgroups.remove(g)
     return out
 
 

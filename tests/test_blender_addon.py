@@ -1053,6 +1053,23 @@ def test_a_light_group_of_the_user_is_kept(addon: None, tmp_path: Path) -> None:
     assert kept == ["Spot.001 keeps its light group 'my_key' (no per-light composite)"]
 
 
+def test_stale_light_groups_of_ours_are_removed(addon: None) -> None:
+    """A renamed light gets a new tyndall_<light> group; the old one, which nothing uses any
+    more, is removed from every view layer. The user's groups stay, used or not."""
+    objs = make_scene()
+    sc = bpy.context.scene
+    sc.view_layers.new("Second")
+    for vl in sc.view_layers:
+        vl.lightgroups.add(name="my_unused")
+    assert blender_addon.results.setup_lightgroups(sc, {"Spot.001": "inscatter.Spot_001"}) == {
+        "Spot.001": "tyndall_Spot_001"
+    }
+    objs["spot"].name = "Key"
+    assert blender_addon.results.setup_lightgroups(sc, {"Key": "inscatter.Key"}) == {"Key": "tyndall_Key"}
+    for vl in sc.view_layers:
+        assert sorted(g.name for g in vl.lightgroups) == ["my_unused", "tyndall_Key"], vl.name
+
+
 def test_sky_without_sun_lamp_is_an_error(addon: None, tmp_path: Path) -> None:
     make_scene()
     with pytest.raises(RuntimeError, match="no sun lamp"):
