@@ -325,6 +325,39 @@ def _links_include(collection: bpy.types.Collection | None) -> bool:
     return any(e.light_linking.link_state == "INCLUDE" for e in entries)
 
 
+def panel_light_count(scene: bpy.types.Scene, view_layer: bpy.types.ViewLayer, include_sun: bool) -> tuple[int, int]:
+    """For the sidebar, without the render :func:`rendered_objects` needs: ``(exported,
+    left_out)`` among the lamp objects a render of ``view_layer`` shows. A lamp is shown when
+    it and every collection on some path to it from the scene's are enabled for renders
+    (Disable in Renders off, the view layer's Exclude off) and its Ray Visibility > Volume
+    Scatter is on; of those, area lamps are left out, and so are sun lamps that cast shadows
+    unless ``include_sun`` (as :func:`~.core.scene_build.build_scene` does). Instanced lamps
+    (particles, collection instances, geometry nodes) are not counted here."""
+    shown: set[str] = set()
+
+    def walk(layer: bpy.types.LayerCollection) -> None:
+        if layer.exclude or layer.collection.hide_render:
+            return
+        shown.update(obj.name for obj in layer.collection.objects)
+        for child in layer.children:
+            walk(child)
+
+    walk(view_layer.layer_collection)
+    lights = [
+        obj
+        for obj in scene.objects
+        if obj.type == "LIGHT" and obj.name in shown and not obj.hide_render and obj.visible_volume_scatter
+    ]
+
+    def exported(light: bpy.types.Light) -> bool:
+        if light.type == "SUN":
+            return include_sun or not light.use_shadow
+        return light.type in ("POINT", "SPOT")
+
+    n = sum(1 for obj in lights if exported(obj.data))
+    return n, len(lights) - n
+
+
 def gather_lights(objects: list[RenderedObject], notes: list[str]) -> list[LightData]:
     """The lights among the objects Cycles renders (:func:`rendered_objects`)."""
     out = []

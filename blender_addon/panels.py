@@ -44,8 +44,8 @@ class VIEW3D_PT_tyndall_volumetrics(_TyndallPanel, bpy.types.Panel):
             text=f"Camera: {cam.name if cam else 'none'}, {w}×{h} px",
             icon="CAMERA_DATA",
         )
-        lights = [o for o in scene.objects if o.type == "LIGHT" and not o.hide_render]
-        col.label(text=f"Lights: {len(lights)}", icon="LIGHT")
+        lights, left_out = gather.panel_light_count(scene, context.view_layer, st.include_sun)
+        col.label(text=f"Lights: {lights}" + (f" ({left_out} left out)" if left_out else ""), icon="LIGHT")
         col.label(text=_world_summary(scene), icon="WORLD")
         layout.prop(st, "resolution_scale")
         layout.prop(st, "tolerance")

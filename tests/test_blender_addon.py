@@ -1070,6 +1070,43 @@ def test_stale_light_groups_of_ours_are_removed(addon: None) -> None:
         assert sorted(g.name for g in vl.lightgroups) == ["my_unused", "tyndall_Key"], vl.name
 
 
+def test_panel_counts_the_lights_a_render_exports(addon: None) -> None:
+    """The sidebar's count follows render visibility: a lamp in a collection disabled for
+    renders or excluded from the view layer, or with Volume Scatter visibility off, is not
+    counted; an area lamp, and a sun unless Sun Lamps in Volume is on, are counted as left out.
+    It agrees with the export."""
+    objs = make_scene()
+    sc = bpy.context.scene
+
+    def lamp(name: str, kind: str, collection: bpy.types.Collection) -> bpy.types.Object:
+        obj = bpy.data.objects.new(name, bpy.data.lights.new(name, kind))
+        collection.objects.link(obj)
+        obj.location = (1.0, 0.0, 5.0)
+        return obj
+
+    off = bpy.data.collections.new("Off for renders")
+    sc.collection.children.link(off)
+    off.hide_render = True
+    inner = bpy.data.collections.new("Inside the disabled one")
+    off.children.link(inner)
+    excluded = bpy.data.collections.new("Excluded")
+    sc.collection.children.link(excluded)
+    bpy.context.view_layer.layer_collection.children["Excluded"].exclude = True
+    lamp("Hidden", "POINT", off)
+    lamp("Hidden too", "POINT", inner)
+    lamp("Excluded lamp", "SPOT", excluded)
+    lamp("Area", "AREA", sc.collection)
+    lamp("No scatter", "POINT", sc.collection).visible_volume_scatter = False
+    lamp("Sun", "SUN", sc.collection)
+    bpy.context.view_layer.update()
+    assert gather.panel_light_count(sc, bpy.context.view_layer, False) == (1, 2)  # Spot.001; area, sun
+    assert [lt["name"] for lt in _built().scene["lights"]] == ["Spot_001"]
+    sc.tyndall.include_sun = True
+    assert gather.panel_light_count(sc, bpy.context.view_layer, True) == (2, 1)
+    assert sorted(lt["name"] for lt in _built().scene["lights"]) == ["Spot_001", "Sun"]
+    assert objs["spot"].name == "Spot.001"
+
+
 def test_sky_without_sun_lamp_is_an_error(addon: None, tmp_path: Path) -> None:
     make_scene()
     with pytest.raises(RuntimeError, match="no sun lamp"):
