@@ -275,6 +275,36 @@ def test_volumetrics_work_reports_the_render_s_progress(tmp_path: Path) -> None:
     assert all(0.1 <= f <= 0.95 + 1e-12 for f, m in seen if m.startswith("rendering volumetrics"))
 
 
+def test_the_scene_is_parsed_once_per_job(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The validation's parsed scene is the one rendered (no IES file depends on the folder):
+    one parse per job, not two. With an IES file the render parses its own."""
+    from blender_addon.core import tasks
+    from blender_addon.core.scene_build import BuiltScene
+
+    parses: list[str] = []
+    parse = tyndall.scene_from_json
+
+    def counted(*args: Any) -> Any:
+        parses.append(args[1])
+        return parse(*args)
+
+    monkeypatch.setattr(tyndall, "scene_from_json", counted)
+    scene = json.loads((REPO / "examples" / "stage_four_spots.json").read_text())
+    scene["camera"]["resolution"], scene["output"]["tolerance"] = [32, 18], 1e-2
+    for with_ies in (False, True):
+        if with_ies:
+            (tmp_path / "p.ies").write_text(IES_TEXT)
+            scene["lights"][0]["ies"] = {"file": str(tmp_path / "p.ies")}
+        built = BuiltScene(scene=scene, ies_texts={}, light_names={}, notes=[])
+        parses.clear()
+        tasks.validate_scene(built, str(tmp_path))
+        staging = Staging(str(tmp_path / f"out{with_ies}"))
+        report = tasks.volumetrics_work(built, staging, lambda f, m="": None)
+        staging.discard()
+        assert report["report"]["resolution"] == [32, 18]
+        assert len(parses) == (2 if with_ies else 1), parses
+
+
 def test_cancelling_a_sky_job_stops_the_sky(tmp_path: Path) -> None:
     """The sky job gets the same stop event (tyndall.sky(..., cancel=)): a 16384 px
     sky at 1e-6 (seconds) stops, so the discarded result is None (the work raised

@@ -39,14 +39,17 @@ def validate_scene(built: BuiltScene, folder: str) -> None:
     """Let Tyndall's loader check the scene (raises ``tyndall.SceneFormatError`` naming the field).
 
     IES files from internal texts are not written yet, so their lights are checked without ``ies``.
+    A scene without IES files is the one the render needs: it is kept in ``built.parsed``.
     """
     import tyndall
 
     scene = resolve_ies_paths(built.scene, folder)
+    uses_ies = any("ies" in lt for lt in scene["lights"])
     for lt in scene["lights"]:
         if "ies" in lt and not os.path.isfile(lt["ies"]["file"]):
             lt.pop("ies")
-    tyndall.as_scene(scene)
+    parsed = tyndall.as_scene(scene)
+    built.parsed = None if uses_ies else parsed
 
 
 def volumetrics_work(
@@ -60,7 +63,7 @@ def volumetrics_work(
 
     progress(0.05, "writing scene")
     names = stage_scene_files(built, staging)
-    scene = resolve_ies_paths(built.scene, staging.path)
+    scene = built.parsed if built.parsed is not None else resolve_ies_paths(built.scene, staging.path)
     progress(0.1, "rendering volumetrics")
 
     # Rows first (all the time without the pixel filter), then the filtered pixels (most
