@@ -99,6 +99,66 @@ fn a_flag_set_while_a_sun_disc_table_is_built_cancels_it() {
     );
 }
 
+/// The example stage at 32×18 over a wavy terrain of `2·n²` triangles: preparation
+/// (BVH, the lights' shadow casters) is nearly all of its time.
+fn stage_over_terrain(n: u32) -> Scene {
+    let mut scene = stage(32, 18, 1e-2);
+    let side = n + 1;
+    let positions = (0..side * side)
+        .map(|k| {
+            let (x, y) = (
+                8.0 * f64::from(k % side) / f64::from(n) - 4.0,
+                8.0 * f64::from(k / side) / f64::from(n) - 4.0,
+            );
+            [x, y, 1.0 + 0.2 * (3.0 * x).sin() * (2.0 * y).cos()]
+        })
+        .collect();
+    let triangles = (0..n * n)
+        .flat_map(|k| {
+            let (i, j) = (k % n, k / n);
+            let a = j * side + i;
+            [[a, a + 1, a + side + 1], [a, a + side + 1, a + side]]
+        })
+        .collect();
+    scene.meshes.push(tyndall_core::scene::Mesh {
+        name: "terrain".into(),
+        positions,
+        triangles,
+        transform: Default::default(),
+        visible_to_camera: true,
+        casts_shadows: true,
+    });
+    scene
+}
+
+#[test]
+fn a_flag_set_while_the_scene_is_prepared_cancels_it() {
+    // 720 000 triangles: the BVH and the four spots' shadow casters take most of a
+    // second in a release build, the render itself a few ms. The flag is asked inside
+    // the BVH build and before each light's casters, not only between the stages.
+    let scene = stage_over_terrain(600);
+    let (_, report) = render(&scene, None).unwrap();
+    let stage_time = |name: &str| report.timings.iter().find(|t| t.stage == name).map_or(0.0, |t| t.seconds);
+    let preparation = Duration::from_secs_f64(stage_time("bvh") + stage_time("shadow_volumes"));
+    let flag = AtomicBool::new(false);
+    let set_at = std::thread::scope(|s| {
+        let setter = s.spawn(|| {
+            std::thread::sleep(preparation / 10);
+            flag.store(true, Ordering::Relaxed);
+            Instant::now()
+        });
+        let r = render_cancellable(&scene, None, Some(&flag));
+        assert!(matches!(r, Err(RenderError::Cancelled)), "{:?}", r.map(|_| ()));
+        Instant::now().duration_since(setter.join().unwrap())
+    });
+    // Not a timing target: relative to the same machine's preparation, so that a slow
+    // or busy machine scales both (measured: ≈ 0.05 s after the flag, of ≈ 1 s).
+    assert!(
+        set_at < preparation / 2,
+        "stopped {set_at:?} after the flag was set; preparation takes {preparation:?}"
+    );
+}
+
 /// The atmosphere with the sun 10° up, and a texture `width` px wide at `tolerance`.
 fn sky_at_10_degrees(width: usize, tolerance: f64) -> (AtmosphereParams, TextureSettings) {
     let params = AtmosphereParams {

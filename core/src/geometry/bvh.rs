@@ -220,13 +220,23 @@ impl Bvh {
     /// If there are 2³¹ triangles or more (node and triangle indices are `u32`).
     #[must_use]
     pub fn build(triangles: Vec<Triangle>) -> Bvh {
-        Self::build_parallel_from(triangles, PARALLEL_MIN_PRIMS)
+        Self::build_parallel_from(triangles, PARALLEL_MIN_PRIMS, &|| false).expect("a build never stopped completes")
     }
 
-    /// [`Bvh::build`] whose subtrees of at least `parallel_min` triangles are
-    /// built on two threads (`rayon::join`). The splits, and so the tree and
-    /// the leaf order, are the same for every `parallel_min`.
-    fn build_parallel_from(triangles: Vec<Triangle>, parallel_min: usize) -> Bvh {
+    /// [`Bvh::build`] that gives up once `stop()` returns true (asked before
+    /// each split of a subtree of at least 16 384 triangles, and once at the
+    /// end): `None` then. A million triangles take ≈ 0.8 s on two threads,
+    /// so a render cancelled while its BVH is built returns within one
+    /// subtree's time instead of the whole build's.
+    #[must_use]
+    pub fn build_cancellable(triangles: Vec<Triangle>, stop: &(dyn Fn() -> bool + Sync)) -> Option<Bvh> {
+        Self::build_parallel_from(triangles, PARALLEL_MIN_PRIMS, stop)
+    }
+
+    /// [`Bvh::build_cancellable`] whose subtrees of at least `parallel_min`
+    /// triangles are built on two threads (`rayon::join`). The splits, and so
+    /// the tree and the leaf order, are the same for every `parallel_min`.
+    fn build_parallel_from(triangles: Vec<Triangle>, parallel_min: usize, stop: &(dyn Fn() -> bool + Sync)) -> Option<Bvh> {
         use rayon::prelude::*;
         assert!(triangles.len() < 1 << 31, "Bvh::build: 2^31 triangles or more");
         let mut prims: Vec<Prim> = triangles
@@ -248,16 +258,19 @@ impl Bvh {
         let nodes = if prims.is_empty() {
             Vec::new()
         } else {
-            subtree(&mut prims, 0, 0, parallel_min.max(2))
+            subtree(&mut prims, 0, 0, parallel_min.max(2), stop)?
         };
+        if stop() {
+            return None;
+        }
         let leaf_tris = prims.par_iter().map(|p| triangles[p.id as usize].v).collect();
         let leaf_ids = prims.iter().map(|p| p.id).collect();
-        Bvh {
+        Some(Bvh {
             triangles,
             nodes,
             leaf_tris,
             leaf_ids,
-        }
+        })
     }
 
     /// Number of triangles given to [`Bvh::build`], degenerate ones included.
@@ -423,9 +436,13 @@ fn bounds_of(prims: &[Prim]) -> (Aabb, Aabb) {
 /// leaf order), its root first; child indices are local to the returned
 /// `Vec`, leaves index the whole leaf order. Large subtrees split their two
 /// halves over two threads and are stitched together by [`join_subtrees`].
-fn subtree(prims: &mut [Prim], offset: usize, depth: u32, parallel_min: usize) -> Vec<Node> {
+/// `None` once `stop()` is true before a large subtree's split.
+fn subtree(prims: &mut [Prim], offset: usize, depth: u32, parallel_min: usize, stop: &(dyn Fn() -> bool + Sync)) -> Option<Vec<Node>> {
     if prims.len() < parallel_min {
-        return subtree_sequential(prims, offset, depth);
+        return Some(subtree_sequential(prims, offset, depth));
+    }
+    if stop() {
+        return None;
     }
     let (bounds, cbounds) = bounds_of(prims);
     let mut root = Node {
@@ -434,15 +451,15 @@ fn subtree(prims: &mut [Prim], offset: usize, depth: u32, parallel_min: usize) -
         count: prims.len() as u32,
     };
     match split(prims, &bounds, &cbounds, depth) {
-        None => vec![root],
+        None => Some(vec![root]),
         Some(mid) => {
             let (left, right) = prims.split_at_mut(mid);
             let (l, r) = rayon::join(
-                || subtree(left, offset, depth + 1, parallel_min),
-                || subtree(right, offset + mid, depth + 1, parallel_min),
+                || subtree(left, offset, depth + 1, parallel_min, stop),
+                || subtree(right, offset + mid, depth + 1, parallel_min, stop),
             );
             root.count = 0;
-            join_subtrees(root, l, r)
+            Some(join_subtrees(root, l?, r?))
         }
     }
 }
@@ -786,8 +803,13 @@ mod tests {
                 [a[0], a[1] + 0.2 * next(), a[2] + 0.1 * next()],
             ));
         }
-        let sequential = Bvh::build_parallel_from(tris.clone(), usize::MAX);
-        let parallel = Bvh::build_parallel_from(tris.clone(), 64);
+        let sequential = Bvh::build_parallel_from(tris.clone(), usize::MAX, &|| false).unwrap();
+        let parallel = Bvh::build_parallel_from(tris.clone(), 64, &|| false).unwrap();
+        // Stopped: before the first split, or part-way (some subtrees built, others not).
+        assert!(Bvh::build_parallel_from(tris.clone(), 64, &|| true).is_none());
+        let asked = std::sync::atomic::AtomicUsize::new(0);
+        let part_way = || asked.fetch_add(1, std::sync::atomic::Ordering::Relaxed) >= 5;
+        assert!(Bvh::build_parallel_from(tris.clone(), 64, &part_way).is_none());
         assert_eq!(parallel.leaf_ids, sequential.leaf_ids);
         assert_eq!(parallel.nodes.len(), sequential.nodes.len());
         for k in 0..2000 {

@@ -100,6 +100,9 @@ pub const SAFETY: f64 = 8.0;
 /// Relative rounding of an f32 sample.
 const F32_ROUNDING: f64 = f32::EPSILON as f64;
 
+/// Triangles per chunk of [`Planes::new_cancellable`].
+const PLANE_CHUNK: usize = 1 << 16;
+
 /// The triangles grouped by mesh and plane.
 pub struct Planes {
     /// Per triangle: its group + 1, or 0 for a degenerate triangle.
@@ -112,37 +115,61 @@ impl Planes {
     /// Groups `tris` (world triangles of `meshes`, in order, as
     /// [`crate::geometry::world_triangles`] makes them) by mesh and plane.
     pub fn new(meshes: &[Mesh], tris: &[Triangle]) -> Planes {
+        Self::new_cancellable(meshes, tris, &|| false).expect("a grouping never stopped completes")
+    }
+
+    /// [`Planes::new`] that gives up once `stop()` is true (asked between
+    /// chunks of [`PLANE_CHUNK`] triangles): `None` then. Each chunk's planes
+    /// are computed in parallel (the degeneracy test and the normal are most
+    /// of the work), then numbered in order, so the groups are the same as
+    /// one sequential pass's. (A curved mesh of 720 000 triangles, a group
+    /// each: 180–216 ms in one pass.)
+    pub fn new_cancellable(meshes: &[Mesh], tris: &[Triangle], stop: &(dyn Fn() -> bool + Sync)) -> Option<Planes> {
+        use rayon::prelude::*;
         let mut key_of: HashMap<(u32, [i64; 4]), u32> = HashMap::default();
         let mut planes: Vec<(DVec3, f64)> = Vec::new();
         let mut group_of = vec![0u32; tris.len()];
-        let mut index = 0usize;
+        // The mesh of each triangle, by runs.
+        let mut mesh_of: Vec<(usize, u32)> = Vec::with_capacity(meshes.len());
+        let mut start = 0usize;
         for (mi, m) in meshes.iter().enumerate() {
-            for _ in &m.triangles {
-                let (i, t) = (index, &tris[index]);
-                index += 1;
-                if t.is_degenerate() {
-                    continue;
-                }
-                let [a, b, c] = t.v;
-                let Some(mut n) = (b - a).cross(c - a).try_normalize() else {
-                    continue;
-                };
-                // One orientation per plane: the largest component positive.
-                if n[n.abs().max_position()] < 0.0 {
-                    n = -n;
-                }
-                let offset = n.dot(a);
-                let scale = 1.0 + a.abs().max_element();
-                let q = |v: f64| (v * 1e9).round() as i64;
-                let key = (mi as u32, [q(n.x), q(n.y), q(n.z), q(offset / scale)]);
-                let g = *key_of.entry(key).or_insert_with(|| {
+            mesh_of.push((start, mi as u32));
+            start += m.triangles.len();
+        }
+        let mesh_at = |i: usize| mesh_of[mesh_of.partition_point(|&(s, _)| s <= i) - 1].1;
+        let plane_of = |t: &Triangle| -> Option<(DVec3, f64, [i64; 4])> {
+            if t.is_degenerate() {
+                return None;
+            }
+            let [a, b, c] = t.v;
+            let mut n = (b - a).cross(c - a).try_normalize()?;
+            // One orientation per plane: the largest component positive.
+            if n[n.abs().max_position()] < 0.0 {
+                n = -n;
+            }
+            let offset = n.dot(a);
+            let scale = 1.0 + a.abs().max_element();
+            let q = |v: f64| (v * 1e9).round() as i64;
+            Some((n, offset, [q(n.x), q(n.y), q(n.z), q(offset / scale)]))
+        };
+        let mut found: Vec<Option<(DVec3, f64, [i64; 4])>> = Vec::new();
+        for first in (0..tris.len().min(start)).step_by(PLANE_CHUNK) {
+            if stop() {
+                return None;
+            }
+            let last = (first + PLANE_CHUNK).min(tris.len()).min(start);
+            tris[first..last].par_iter().map(plane_of).collect_into_vec(&mut found);
+            for (k, f) in found.iter().enumerate() {
+                let Some((n, offset, key)) = *f else { continue };
+                let i = first + k;
+                let g = *key_of.entry((mesh_at(i), key)).or_insert_with(|| {
                     planes.push((n, offset));
                     planes.len() as u32 - 1
                 });
                 group_of[i] = g + 1;
             }
         }
-        Planes { group_of, planes }
+        Some(Planes { group_of, planes })
     }
 
     /// The group + 1 of triangle `i` (0: degenerate or unknown).
