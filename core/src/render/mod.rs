@@ -807,8 +807,7 @@ fn prepare_stage_shadows<const C: usize>(
         );
         return Ok(());
     }
-    stage_lights.build_shadows_cancellable(&indexed, stop);
-    if stop() {
+    if !stage_lights.build_shadows_cancellable(&indexed, stop) {
         return Err(RenderError::Cancelled);
     }
     let casters: Vec<Option<&crate::light::shadow::ShadowWedges>> = stage_lights

@@ -367,22 +367,26 @@ impl<const C: usize> StageLights<C> {
 
     /// Builds the shadow casters of every light from the scene's meshes.
     pub fn build_shadows(&mut self, meshes: &[IndexedMesh<'_>]) {
-        self.build_shadows_cancellable(meshes, &|| false);
+        let complete = self.build_shadows_cancellable(meshes, &|| false);
+        debug_assert!(complete);
     }
 
-    /// [`Self::build_shadows`] that stops starting lights once `stop()` is true
-    /// (the lights not started are left without casters: the caller ends the
-    /// render as cancelled). A light's casters for a million triangles take
-    /// ≈ 0.25 s.
-    pub fn build_shadows_cancellable(&mut self, meshes: &[IndexedMesh<'_>], stop: &(dyn Fn() -> bool + Sync)) {
+    /// [`Self::build_shadows`] that stops starting lights once `stop()` is true;
+    /// false when it did (the lights not started are left without casters, and
+    /// the render must not go on). A light's casters for a million triangles
+    /// take ≈ 0.25 s.
+    #[must_use]
+    pub fn build_shadows_cancellable(&mut self, meshes: &[IndexedMesh<'_>], stop: &(dyn Fn() -> bool + Sync)) -> bool {
         if meshes.iter().all(|m| m.triangles.is_empty()) {
-            return;
+            return true;
         }
+        let skipped = std::sync::atomic::AtomicBool::new(false);
         // One light per task: the wedges and the visibility grid of each are independent.
         // Once `stop()` is true the lights not started are left without (the caller
         // then ends the render as cancelled).
         self.points.par_iter_mut().filter(|p| p.casts_shadows).for_each(|p| {
             if stop() {
+                skipped.store(true, std::sync::atomic::Ordering::Relaxed);
                 return;
             }
             let l = &p.light;
@@ -392,14 +396,18 @@ impl<const C: usize> StageLights<C> {
             let (fx, fy) = (l.frame.x, l.frame.y);
             p.shadows = Some(ShadowWedges::build(Projector::Point(apex), meshes, keep).with_visibility_grid(axis, fx, fy, half, meshes));
         });
+        if skipped.load(std::sync::atomic::Ordering::Relaxed) {
+            return false;
+        }
         for w in self.windows.iter_mut().filter(|w| w.casts_shadows) {
             if stop() {
-                return;
+                return false;
             }
             let light = w.light.clone();
             let keep = move |centre: DVec3, radius: f64| light.may_touch_sphere(centre, radius);
             w.shadows = Some(ShadowWedges::build(Projector::Directional(w.light.to_light), meshes, keep));
         }
+        true
     }
 
     /// The stage lights' in-scatter along `ray`; per-light RGB values go to
