@@ -210,6 +210,10 @@ def test_unnormalized_lights_as_blender_imports_and_cycles_renders(tmp_path: Pat
     assert _close(got["Point"]["power_w"], 10.0 * math.pi * 4.0)
     assert _close(got["Sun"]["strength_w_m2"], 4000.0 * math.pi * math.sin(math.radians(0.3)) ** 2)
     assert sum("inputs:normalize is off" in n for n in conv.notes) == 4
+    # The sun's factor, 8.6e-5 at 0.3°, leaves it nearly dark: the note says how to get the strength.
+    (sun_note,) = [n for n in conv.notes if n.startswith("/World/Sun:")]
+    assert "nearly dark" in sun_note and "author inputs:normalize = 1" in sun_note, sun_note
+    assert not any("nearly dark" in n for n in conv.notes if not n.startswith("/World/Sun:"))
     _validate(conv.scene)
 
 

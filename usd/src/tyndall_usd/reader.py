@@ -440,8 +440,16 @@ class _Converter:
             factor = area if area > 0.0 else 1.0
             strength *= factor
             if factor != 1.0:
+                dim = (
+                    f": the sun gives {strength:.4g} W/m², nearly dark as UsdLux defines it and as Blender + "
+                    "Cycles render it; if the stage's tool meant inputs:intensity as the sun's strength, "
+                    "author inputs:normalize = 1"
+                    if factor < 0.01
+                    else ""
+                )
                 self.notes.append(
-                    f"{path}: inputs:normalize is off: strength × {factor:.6g} (the disc Cycles does not divide by)"
+                    f"{path}: inputs:normalize is off: strength × {factor:.6g} "
+                    f"(the disc Cycles does not divide by){dim}"
                 )
         return {
             "type": "sun",
