@@ -85,6 +85,12 @@ def gather_world_medium(world: bpy.types.World | None) -> list[MediumData]:
     root = _linked_from(out.inputs["Volume"], include_muted_link=muted_by_tyndall)
     if root is None:
         return []
+    return [_medium_of(root, where, "")]
+
+
+def _medium_of(root: bpy.types.Node, where: str, prefix: str) -> MediumData:
+    """The volume shader tree at ``root`` (Volume Scatter, Volume Absorption, Principled
+    Volume, Add Shader) as one homogeneous medium named ``prefix`` + its node names."""
     nodes: list[bpy.types.Node] = []
     _volume_nodes(root, where, nodes)
     sig_s = [0.0, 0.0, 0.0]
@@ -124,8 +130,8 @@ def gather_world_medium(world: bpy.types.World | None) -> list[MediumData]:
     if len(distinct) > 1:
         raise SceneInputError(f"{where}: scattering nodes with different phase functions are not supported ({phases})")
     phase = phases[0][1] if phases else {"type": "isotropic"}
-    name = "+".join(n.name for n in nodes)
-    return [MediumData(node=name, scattering=tuple(sig_s), absorption=tuple(sig_a), phase=phase)]
+    name = prefix + "+".join(n.name for n in nodes)
+    return MediumData(node=name, scattering=tuple(sig_s), absorption=tuple(sig_a), phase=phase)
 
 
 # -- what Cycles renders ------------------------------------------------------------
@@ -469,9 +475,85 @@ def _volume_only(material: bpy.types.Material | None) -> bool:
     )
 
 
+def _axis_aligned_box(world: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """``(min, max)`` when the triangles (world vertices) close an axis-aligned box: every
+    vertex at one of its 8 corners, all 8 used, and each of the 6 faces covered by the
+    triangles lying in it (their areas sum to the face's); else ``None``."""
+    if len(world) == 0 or not np.isfinite(world).all():
+        return None
+    lo, hi = world.min(axis=0), world.max(axis=0)
+    size = hi - lo
+    if not (size > 0.0).all():
+        return None
+    tol = 1e-6 * float(size.max())
+    at_lo, at_hi = np.abs(world - lo) <= tol, np.abs(world - hi) <= tol
+    if not (at_lo | at_hi).all():
+        return None
+    corners = {tuple(row) for row in at_hi.astype(int)}
+    if len(corners) != 8:
+        return None
+    t = world[np.asarray(triangles, dtype=np.int64)]
+    area = 0.5 * np.linalg.norm(np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]), axis=1)
+    for axis in range(3):
+        u, v = [a for a in range(3) if a != axis]
+        face = float(size[u] * size[v])
+        for side in (lo[axis], hi[axis]):
+            on = (np.abs(t[:, :, axis] - side) <= tol).all(axis=1)
+            if abs(float(area[on].sum()) - face) > 1e-6 * face:
+                return None
+    return lo, hi
+
+
+def gather_fog_boxes(objects: list[RenderedObject], notes: list[str]) -> list[MediumData]:
+    """Meshes whose material has only a Volume output (fog volumes) as homogeneous media
+    bounded by their box, where the mesh is an axis-aligned box in world space (Tyndall's
+    bounded media are boxes); others are left out with a note. Cycles fills a closed mesh's
+    inside with its material's volume, over the world volume's (the coefficients add)."""
+    out = []
+    for ro in objects:
+        obj = ro.original
+        if obj.type not in GEOMETRY_TYPES:
+            continue
+        materials = [slot.material for slot in obj.material_slots]
+        if not materials or not all(_volume_only(m) for m in materials):
+            continue
+        if len({m.name for m in materials}) != 1:
+            notes.append(f"{ro.name}: a fog volume with several materials is not exported; left out")
+            continue
+        if not obj.visible_camera:
+            notes.append(f"{ro.name}: a fog volume with Ray Visibility > Camera off is not exported; left out")
+            continue
+        box = None
+        if ro.geometry is not None:
+            positions, triangles = ro.geometry
+            m = np.asarray(_rows(ro.matrix), dtype=np.float64)
+            world = np.asarray(positions, dtype=np.float64).reshape(-1, 3) @ m[:3, :3].T + m[:3, 3]
+            box = _axis_aligned_box(world, np.asarray(triangles).reshape(-1, 3))
+        if box is None:
+            notes.append(
+                f"{ro.name}: a fog volume that is not an axis-aligned box in world space (Tyndall's bounded "
+                "media are boxes); left out"
+            )
+            continue
+        material = materials[0]
+        out_node = _active_output(material.node_tree, "ShaderNodeOutputMaterial")
+        root = _linked_from(out_node.inputs["Volume"]) if out_node is not None else None
+        if root is None:
+            continue
+        medium = _medium_of(root, f"fog volume '{ro.name}', material '{material.name}'", f"{ro.name}: ")
+        lo, hi = box
+        medium.bounds = (
+            (float(lo[0]), float(lo[1]), float(lo[2])),
+            (float(hi[0]), float(hi[1]), float(hi[2])),
+        )
+        out.append(medium)
+    return out
+
+
 def gather_meshes(objects: list[RenderedObject], notes: list[str]) -> list[MeshData]:
     """The surfaces among the objects Cycles renders (:func:`rendered_objects`), evaluated
-    (modifiers applied, instances placed), as occluders."""
+    (modifiers applied, instances placed), as occluders. Fog volumes (a material with only a
+    Volume output) are not surfaces: :func:`gather_fog_boxes` takes them."""
     out = []
     for ro in objects:
         obj = ro.original
@@ -479,7 +561,6 @@ def gather_meshes(objects: list[RenderedObject], notes: list[str]) -> list[MeshD
             continue
         materials = [slot.material for slot in obj.material_slots]
         if materials and all(_volume_only(m) for m in materials):
-            notes.append(f"{ro.name}: its material has only a Volume output (a fog volume, not a surface); left out")
             continue
         if not obj.visible_camera and not obj.visible_shadow:
             notes.append(f"{ro.name}: Ray Visibility > Camera and Shadow are off; left out")
@@ -506,14 +587,17 @@ def gather_scene(scene: bpy.types.Scene, view_layer: bpy.types.ViewLayer) -> Sce
     # Blender renders nothing without a camera: then the build reports the missing camera.
     objects = rendered_objects(scene, view_layer) if camera is not None else []
     volumes = [ro.name for ro in objects if ro.original.type == "VOLUME"]
-    notes = [f"{name}: volume objects are not exported (only the world volume)" for name in volumes]
+    notes = [
+        f"{name}: volume objects (OpenVDB) are not exported (only the world volume and fog boxes)" for name in volumes
+    ]
     lights = gather_lights(objects, notes)
     meshes = gather_meshes(objects, notes)
+    fog = gather_fog_boxes(objects, notes)
     notes = list(dict.fromkeys(notes))  # once per instanced object, not once per instance
     return SceneData(
         camera=camera,
         lights=lights,
-        media=gather_world_medium(scene.world),
+        media=gather_world_medium(scene.world) + fog,
         meshes=meshes,
         unit_scale=float(scene.unit_settings.scale_length),
         skipped=notes,

@@ -73,12 +73,15 @@ class LightData:
 
 @dataclass
 class MediumData:
-    """The world volume, reduced to homogeneous coefficients."""
+    """The world volume, or a fog box's, reduced to homogeneous coefficients."""
 
     node: str  # node names for messages
     scattering: tuple[float, float, float]
     absorption: tuple[float, float, float] = (0.0, 0.0, 0.0)
     phase: dict[str, Any] = field(default_factory=lambda: {"type": "isotropic"})
+    # A volume object's axis-aligned box in world space (min, max corners, Blender units);
+    # None: the world volume, everywhere.
+    bounds: tuple[tuple[float, float, float], tuple[float, float, float]] | None = None
 
 
 @dataclass
@@ -364,7 +367,7 @@ def build_scene(data: SceneData) -> BuiltScene:
     if not data.media:
         raise SceneInputError(
             "the scene has no participating medium: connect a Volume Scatter or Principled Volume "
-            "to the World Output's Volume input"
+            "to the World Output's Volume input, or to a box mesh's material (Volume output only)"
         )
 
     names = cv.unique_names([lt.name for lt in data.lights])
@@ -391,9 +394,13 @@ def build_scene(data: SceneData) -> BuiltScene:
         sig_a = [float(v) / s for v in m.absorption]
         if not all(math.isfinite(v) and v >= 0.0 for v in sig_s + sig_a):
             raise SceneInputError(f"medium '{m.node}': coefficients must be finite and ≥ 0, got {sig_s}, {sig_a}")
-        media.append(
-            {"type": "homogeneous", "name": m.node, "scattering": sig_s, "absorption": sig_a, "phase": m.phase}
-        )
+        entry = {"type": "homogeneous", "name": m.node, "scattering": sig_s, "absorption": sig_a, "phase": m.phase}
+        if m.bounds is not None:
+            lo, hi = ([cv.finite(f"medium '{m.node}' bounds", float(v)) * s for v in c] for c in m.bounds)
+            if not all(a < b for a, b in zip(lo, hi, strict=True)):
+                raise SceneInputError(f"medium '{m.node}': its box is empty ({lo} .. {hi})")
+            entry["bounds"] = {"box": {"min": lo, "max": hi}}
+        media.append(entry)
     if all(max(m["scattering"]) + max(m["absorption"]) <= 0.0 for m in media):
         raise SceneInputError("the world volume has zero density: nothing to compute")
 
