@@ -246,6 +246,33 @@ def test_shadow_and_ray_visibility_flags(tmp_path: Path) -> None:
     assert again["meshes"][0]["visible_to_camera"] is False and again["meshes"][0]["casts_shadows"] is False
 
 
+def test_a_boxed_medium_round_trips_through_write_stage(tmp_path: Path) -> None:
+    """A homogeneous medium bounded by a box (the add-on's fog boxes) is written as a medium prim
+    with ``tyndall:medium:bounds = "box"`` and a child Cube spanning it, and read back as the same
+    box and coefficients; before, it was left out with a note."""
+    scene = json.loads((DATA.parent.parent.parent / "examples" / "stage_four_spots.json").read_text())
+    scene["media"].append(
+        {
+            "type": "homogeneous",
+            "name": "Fog: Volume Scatter",
+            "scattering": [0.24, 0.2, 0.16],
+            "absorption": 0.01,
+            "phase": {"type": "henyey_greenstein", "g": 0.4},
+            "bounds": {"box": {"min": [-0.8, -0.75, 0.5], "max": [1.2, 0.8, 1.9]}},
+        }
+    )
+    _validate(scene)
+    assert write_stage(scene, str(tmp_path / "fog.usda")) == []
+    again = convert_stage(str(tmp_path / "fog.usda")).scene
+    (fog,) = [m for m in again["media"] if m["name"] == "Fog: Volume Scatter"]
+    assert _close(fog["bounds"]["box"]["min"], [-0.8, -0.75, 0.5], 1e-9)
+    assert _close(fog["bounds"]["box"]["max"], [1.2, 0.8, 1.9], 1e-9)
+    assert _close(fog["scattering"], [0.24, 0.2, 0.16], 1e-6) and _close(fog["absorption"], 0.01, 1e-6)
+    assert fog["phase"]["type"] == "henyey_greenstein" and _close(fog["phase"]["g"], 0.4, 1e-6)
+    assert not any(m["name"] == "box" for m in again["meshes"])  # the Cube is the box, not an occluder
+    _validate(again)
+
+
 def test_color_temperature_outside_blender_exports(tmp_path: Path) -> None:
     stage = _stage(tmp_path)
     light = UsdLux.SphereLight.Define(stage, "/World/Warm")

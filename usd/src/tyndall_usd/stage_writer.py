@@ -19,7 +19,9 @@ meshes a Blender user had (the Blender → USD → Scene → USD → Blender rou
   ``tyndall:castsShadows`` = 0 (no UsdGeom schema holds ray visibility).
 * camera → ``Camera``: lengths in tenths of a stage unit (focal length, apertures, offsets);
   the aperture has the image's aspect on the fitted side; ``tyndall:output:resolution``.
-* homogeneous and height-fog media → an ``Xform`` with the ``tyndall:medium:*`` attributes.
+* homogeneous and height-fog media → an ``Xform`` with the ``tyndall:medium:*`` attributes; a
+  homogeneous medium with box bounds also gets ``tyndall:medium:bounds = "box"`` and a child
+  ``Cube`` spanning the box.
 
 Stage: ``upAxis = Z``, ``metersPerUnit = 1``, default prim ``/root``. What UsdLux cannot
 hold (window lights, Nishita and tabulated distributions, fog layers, ellipsoids,
@@ -253,8 +255,12 @@ def write_stage(
         kind = med.get("type")
         name = _prim_name(med.get("name", ""), f"medium{i}", used)
         attrs: dict[str, Any] = {"tyndall:medium:type": kind, "tyndall:medium:name": med.get("name", name)}
-        if kind == "homogeneous" and med.get("bounds", "world") == "world":
+        bounds = med.get("bounds", "world")
+        box = bounds.get("box") if isinstance(bounds, dict) else None
+        if kind == "homogeneous" and (bounds == "world" or box is not None):
             coeffs = {"scattering": med["scattering"], "absorption": med.get("absorption", 0.0)}
+            if box is not None:
+                attrs["tyndall:medium:bounds"] = "box"
             phase = med.get("phase", {"type": "isotropic"})
             attrs["tyndall:medium:phase"] = phase["type"]
             if "g" in phase:
@@ -285,5 +291,12 @@ def write_stage(
             _set(prim, k, v)
         for k, v in coeffs.items():
             _set(prim, "tyndall:medium:" + k, _coefficient(v))
+        if box is not None:
+            # The box as a child Cube (size 2: −1..1, moved and scaled in double precision),
+            # whose world bound the reader takes (geometry inside a medium prim is its box only).
+            lo, hi = (Gf.Vec3d(*(float(x) for x in box[k])) for k in ("min", "max"))
+            cube = UsdGeom.Cube.Define(stage, f"{ROOT}/{name}/box")
+            cube.AddTranslateOp(UsdGeom.XformOp.PrecisionDouble).Set((lo + hi) * 0.5)
+            cube.AddScaleOp(UsdGeom.XformOp.PrecisionDouble).Set((hi - lo) * 0.5)
     stage.GetRootLayer().Save()
     return notes
