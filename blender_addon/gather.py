@@ -463,16 +463,23 @@ def gather_camera(scene: bpy.types.Scene, resolution_scale: float = 1.0) -> Came
     )
 
 
+def _volume_root(material: bpy.types.Material) -> bpy.types.Node | None:
+    """The node feeding the Volume of ``material``'s Material Output; a link Tyndall muted
+    for the composite's surface render still counts."""
+    if not material.use_nodes or material.node_tree is None:
+        return None
+    out = _active_output(material.node_tree, "ShaderNodeOutputMaterial")
+    if out is None:
+        return None
+    return _linked_from(out.inputs["Volume"], include_muted_link=bool(material.get(MUTED_VOLUME_PROP, False)))
+
+
 def _volume_only(material: bpy.types.Material | None) -> bool:
     """Whether ``material`` feeds only the Volume of its Material Output (a fog box: no surface)."""
     if material is None or not material.use_nodes or material.node_tree is None:
         return False
     out = _active_output(material.node_tree, "ShaderNodeOutputMaterial")
-    return (
-        out is not None
-        and _linked_from(out.inputs["Surface"]) is None
-        and _linked_from(out.inputs["Volume"]) is not None
-    )
+    return out is not None and _linked_from(out.inputs["Surface"]) is None and _volume_root(material) is not None
 
 
 def _axis_aligned_box(world: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
@@ -536,11 +543,11 @@ def gather_fog_boxes(objects: list[RenderedObject], notes: list[str]) -> list[Me
             )
             continue
         material = materials[0]
-        out_node = _active_output(material.node_tree, "ShaderNodeOutputMaterial")
-        root = _linked_from(out_node.inputs["Volume"]) if out_node is not None else None
+        root = _volume_root(material)
         if root is None:
             continue
         medium = _medium_of(root, f"fog volume '{ro.name}', material '{material.name}'", f"{ro.name}: ")
+        medium.material = material.name
         lo, hi = box
         medium.bounds = (
             (float(lo[0]), float(lo[1]), float(lo[2])),

@@ -390,6 +390,10 @@ def import_results(context: bpy.types.Context, folder: str, sky: bool = True, vo
         done.extend(kept)
         if st.mute_world_volume and results.mute_world_volume(scene):
             done.append("world volume muted for the surface render")
+        if st.mute_world_volume:
+            fog = results.mute_fog_volumes(rep.get("blender", {}).get("fog_materials", []))
+            if fog:
+                done.append(f"fog boxes' volume muted for the surface render ({', '.join(fog)})")
         if lgs:
             done.append(f"{len(lgs)} light groups")
     sky_exr = os.path.join(folder, tasks.SKY_EXR)

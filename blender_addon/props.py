@@ -58,8 +58,9 @@ class TyndallSettings(bpy.types.PropertyGroup):
     mute_world_volume: BoolProperty(  # type: ignore[valid-type]
         name="Mute World Volume",
         description=(
-            "Render surfaces without the world volume (the link is muted, not removed): the compositor adds "
-            "Tyndall's transmittance and in-scatter, so Cycles must not render the haze as well"
+            "Render surfaces without the world volume and the exported fog boxes' volumes (the links are "
+            "muted, not removed): the compositor adds Tyndall's transmittance and in-scatter, so Cycles must "
+            "not render the haze as well"
         ),
         default=True,
     )

@@ -166,6 +166,29 @@ def unmute_world_volume(scene: bpy.types.Scene) -> bool:
     return True
 
 
+def mute_fog_volumes(names: list[str]) -> list[str]:
+    """Mute the Volume link of the fog boxes' materials ``names`` (exported as media) for the
+    composite's surface render, as :func:`mute_world_volume` does the world's; they are marked
+    so that ``gather`` still reads them. Returns the materials muted."""
+    muted = []
+    for name in names:
+        material = bpy.data.materials.get(name)
+        if material is None or material.node_tree is None:
+            continue
+        links = [
+            link
+            for node in material.node_tree.nodes
+            if node.bl_idname == "ShaderNodeOutputMaterial"
+            for link in node.inputs["Volume"].links
+        ]
+        for link in links:
+            link.is_muted = True
+        if links:
+            material[gather.MUTED_VOLUME_PROP] = True
+            muted.append(name)
+    return muted
+
+
 def setup_compositor(
     scene: bpy.types.Scene, exr: str, light_layers: dict[str, str], lightgroups: dict[str, str]
 ) -> bpy.types.NodeTree:

@@ -1380,6 +1380,12 @@ def test_a_fog_box_is_a_bounded_medium_and_matches_cycles(tmp_path: Path) -> Non
         ratio = float(got[keep].sum() / ref[keep].sum())
         print(f"fog box: relative RMSE {rmse:.3%}, Tyndall/Cycles sum {ratio:.4f}")
         assert rmse <= 0.03 and abs(ratio - 1.0) <= 0.01
+        # Applied, the composite's surface render must not scatter in the fog box again: its
+        # material's Volume link is muted like the world's, and the box is still read as a medium.
+        assert report["blender"]["fog_materials"] == ["Fog"]
+        fog_out = bpy.data.materials["Fog"].node_tree.nodes["Material Output"]
+        assert all(link.is_muted for link in fog_out.inputs["Volume"].links)
+        assert [m["name"] for m in _built().scene["media"] if m["name"].startswith("Fog: ")] == ["Fog: Volume Scatter"]
         turned = _fog_box(sc, "Turned", (3.0, 0.0, 1.0), (1.0, 1.0, 1.0), 0.3)
         turned.rotation_euler = (0.0, 0.0, 0.3)
         bpy.context.view_layer.update()

@@ -82,6 +82,7 @@ class MediumData:
     # A volume object's axis-aligned box in world space (min, max corners, Blender units);
     # None: the world volume, everywhere.
     bounds: tuple[tuple[float, float, float], tuple[float, float, float]] | None = None
+    material: str = ""  # a fog box's material (muted with the world volume for the surface render)
 
 
 @dataclass
@@ -145,6 +146,9 @@ class BuiltScene:
     ies_texts: dict[str, str]  # file name (relative to the scene folder) → contents of internal IES texts
     light_names: dict[str, str]  # Blender object name → Tyndall light name (= EXR layer inscatter.<name>)
     notes: list[str]
+    # Materials of the fog boxes exported as media: the surface render of the composite mutes
+    # their Volume as it does the world's (else the haze in them would count twice).
+    fog_materials: list[str] = field(default_factory=list)
     # The tyndall.Scene the validation parsed, where it is the one the render needs (no IES
     # file, whose path depends on the folder): the render reuses it instead of parsing again
     # (0.19 s per million triangles).
@@ -439,7 +443,10 @@ def build_scene(data: SceneData) -> BuiltScene:
         "pixel_filter": _pixel_filter(data.camera, notes),
     }
     scene = {"version": 1, "camera": camera, "meshes": meshes, "lights": lights, "media": media, "output": output}
-    return BuiltScene(scene=scene, ies_texts=ies_texts, light_names=light_names, notes=notes)
+    fog_materials = sorted({m.material for m in data.media if m.material})
+    return BuiltScene(
+        scene=scene, ies_texts=ies_texts, light_names=light_names, notes=notes, fog_materials=fog_materials
+    )
 
 
 def resolve_ies_paths(scene: dict[str, Any], folder: str) -> dict[str, Any]:

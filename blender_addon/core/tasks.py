@@ -87,6 +87,7 @@ def volumetrics_work(
     )
     report.setdefault("blender", {})["notes"] = list(built.notes)
     report["blender"]["light_layers"] = {k: f"inscatter.{v}" for k, v in built.light_names.items()}
+    report["blender"]["fog_materials"] = list(built.fog_materials)
     atomic_write_json(staging.file(REPORT_JSON), report)
     progress(1.0, "done")
     return {"report": report, "files": [*names, VOLUMETRICS_EXR, REPORT_JSON]}
