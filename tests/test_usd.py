@@ -270,6 +270,9 @@ def test_a_boxed_medium_round_trips_through_write_stage(tmp_path: Path) -> None:
     assert _close(fog["scattering"], [0.24, 0.2, 0.16], 1e-6) and _close(fog["absorption"], 0.01, 1e-6)
     assert fog["phase"]["type"] == "henyey_greenstein" and _close(fog["phase"]["g"], 0.4, 1e-6)
     assert not any(m["name"] == "box" for m in again["meshes"])  # the Cube is the box, not an occluder
+    written = Usd.Stage.Open(str(tmp_path / "fog.usda"))  # (kept: its prims die with it)
+    cube = written.GetPrimAtPath("/root/Fog__Volume_Scatter/box")
+    assert UsdGeom.Imageable(cube).GetPurposeAttr().Get() == UsdGeom.Tokens.guide  # no surface in Blender
     _validate(again)
 
 

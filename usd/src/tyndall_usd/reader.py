@@ -629,7 +629,9 @@ class _Converter:
         return {"type": kind}
 
     def box(self, prim: Usd.Prim) -> dict[str, list[float]]:
-        rng = self.bbox_cache.ComputeWorldBound(prim).ComputeAlignedRange()
+        # Every purpose: the box's geometry is a helper, and may be a guide (write_stage's is).
+        every = [UsdGeom.Tokens.default_, UsdGeom.Tokens.render, UsdGeom.Tokens.proxy, UsdGeom.Tokens.guide]
+        rng = UsdGeom.BBoxCache(self.time, every).ComputeWorldBound(prim).ComputeAlignedRange()
         if rng.IsEmpty():
             raise UsdSceneError(str(prim.GetPath()), NS + "medium:bounds", "'box' needs a prim with geometry (extent)")
         corners = [self.to_world.Transform(rng.GetCorner(i)) for i in range(8)]

@@ -294,8 +294,10 @@ def write_stage(
         if box is not None:
             # The box as a child Cube (size 2: −1..1, moved and scaled in double precision),
             # whose world bound the reader takes (geometry inside a medium prim is its box only).
+            # Purpose guide: a helper, which USD importers (Blender's) do not render as a surface.
             lo, hi = (Gf.Vec3d(*(float(x) for x in box[k])) for k in ("min", "max"))
             cube = UsdGeom.Cube.Define(stage, f"{ROOT}/{name}/box")
+            cube.CreatePurposeAttr(UsdGeom.Tokens.guide)
             cube.AddTranslateOp(UsdGeom.XformOp.PrecisionDouble).Set((lo + hi) * 0.5)
             cube.AddScaleOp(UsdGeom.XformOp.PrecisionDouble).Set((hi - lo) * 0.5)
     stage.GetRootLayer().Save()
