@@ -511,6 +511,15 @@ def _axis_aligned_box(world: np.ndarray, triangles: np.ndarray) -> tuple[np.ndar
     return lo, hi
 
 
+def _fog_materials(obj: bpy.types.Object) -> list[bpy.types.Material] | None:
+    """The materials of a geometry object whose every material has only a Volume output
+    (a fog volume, no surface); ``None`` for anything else."""
+    if obj.type not in GEOMETRY_TYPES:
+        return None
+    materials = [slot.material for slot in obj.material_slots]
+    return materials if materials and all(_volume_only(m) for m in materials) else None
+
+
 def gather_fog_boxes(objects: list[RenderedObject], notes: list[str]) -> list[MediumData]:
     """Meshes whose material has only a Volume output (fog volumes) as homogeneous media
     bounded by their box, where the mesh is an axis-aligned box in world space (Tyndall's
@@ -518,12 +527,10 @@ def gather_fog_boxes(objects: list[RenderedObject], notes: list[str]) -> list[Me
     inside with its material's volume, over the world volume's (the coefficients add)."""
     out = []
     for ro in objects:
+        materials = _fog_materials(ro.original)
+        if materials is None:
+            continue
         obj = ro.original
-        if obj.type not in GEOMETRY_TYPES:
-            continue
-        materials = [slot.material for slot in obj.material_slots]
-        if not materials or not all(_volume_only(m) for m in materials):
-            continue
         if len({m.name for m in materials}) != 1:
             notes.append(f"{ro.name}: a fog volume with several materials is not exported; left out")
             continue
@@ -564,10 +571,7 @@ def gather_meshes(objects: list[RenderedObject], notes: list[str]) -> list[MeshD
     out = []
     for ro in objects:
         obj = ro.original
-        if obj.type not in GEOMETRY_TYPES:
-            continue
-        materials = [slot.material for slot in obj.material_slots]
-        if materials and all(_volume_only(m) for m in materials):
+        if obj.type not in GEOMETRY_TYPES or _fog_materials(obj) is not None:
             continue
         if not obj.visible_camera and not obj.visible_shadow:
             notes.append(f"{ro.name}: Ray Visibility > Camera and Shadow are off; left out")

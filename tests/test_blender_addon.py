@@ -1271,6 +1271,22 @@ def test_addon_volumetrics_match_converged_cycles(
     assert rmse <= 0.01
 
 
+def _against_cycles(out: Path, cycles: Any) -> tuple[float, float, dict[str, Any]]:
+    """The add-on's ``inscatter`` in ``out`` against a Cycles image: relative RMSE and the ratio
+    of the sums, without the 4 × 4 px around each spot's image (Cycles loses light there,
+    docs/cycles-conventions.md §2); and the report."""
+    import numpy as np
+
+    got = exr_channels(str(out / "volumetrics.exr"))["inscatter"].astype("float64")
+    ref = np.asarray(cycles, dtype="float64")
+    report = json.loads((out / "report.json").read_text())
+    keep = np.ones(ref.shape[:2], dtype=bool)
+    for x, y in report["stats"].get("light_images", []):
+        keep[max(0, int(y) - 2) : int(y) + 2, max(0, int(x) - 2) : int(x) + 2] = False
+    rmse = float(np.sqrt(np.mean((got[keep] - ref[keep]) ** 2)) / np.sqrt(np.mean(ref[keep] ** 2)))
+    return rmse, float(got[keep].sum() / ref[keep].sum()), report
+
+
 def test_ray_visibility_and_cast_shadow_match_cycles(tmp_path: Path) -> None:
     """Blender's Ray Visibility (a mesh's Camera and Shadow) and a lamp's Cast Shadow, which the
     add-on used to note and ignore (Tyndall's meshes blocked the view and cast shadows): the
@@ -1280,7 +1296,6 @@ def test_ray_visibility_and_cast_shadow_match_cycles(tmp_path: Path) -> None:
     (512 samples, ≈ 1 % noise). With the switches ignored, the relative RMSE against these
     renders was 17 %, 20 % and 4.1 %. A lamp without shadows is not dimmed by the haze on its way
     either (Cycles traces no shadow ray for it, and applies the medium's extinction on that ray)."""
-    import numpy as np
 
     data = REPO / "tests" / "data" / "cycles"
     ref_mod = _cycles_reference_module()
@@ -1307,15 +1322,7 @@ def test_ray_visibility_and_cast_shadow_match_cycles(tmp_path: Path) -> None:
         try:
             out = tmp_path / case.replace(" ", "_")
             assert bpy.ops.tyndall.compute_volumetrics("EXEC_DEFAULT", directory=str(out)) == {"FINISHED"}
-            got = exr_channels(str(out / "volumetrics.exr"))["inscatter"].astype("float64")
-            ref = np.asarray(cycles, dtype="float64")
-            # The spot's own pixels (Cycles loses light there, docs/cycles-conventions.md §2).
-            report = json.loads((out / "report.json").read_text())
-            keep = np.ones(ref.shape[:2], dtype=bool)
-            for x, y in report["stats"].get("light_images", []):
-                keep[max(0, int(y) - 2) : int(y) + 2, max(0, int(x) - 2) : int(x) + 2] = False
-            rmse = float(np.sqrt(np.mean((got[keep] - ref[keep]) ** 2)) / np.sqrt(np.mean(ref[keep] ** 2)))
-            ratio = float(got[keep].sum() / ref[keep].sum())
+            rmse, ratio, _ = _against_cycles(out, cycles)
             print(f"{case}: relative RMSE {rmse:.3%}, Tyndall/Cycles sum {ratio:.4f}")
             assert rmse <= 0.03 and abs(ratio - 1.0) <= 0.01, case
         finally:
@@ -1352,7 +1359,6 @@ def test_a_fog_box_is_a_bounded_medium_and_matches_cycles(tmp_path: Path) -> Non
     coefficients add where the two overlap, as Cycles stacks volumes), it must match Cycles
     rendered here (512 samples, ≈ 1 % noise). Before, it was left out with a note. A rotated box
     is not an axis-aligned box: left out, with a note."""
-    import numpy as np
 
     data = REPO / "tests" / "data" / "cycles"
     ref_mod = _cycles_reference_module()
@@ -1370,14 +1376,7 @@ def test_a_fog_box_is_a_bounded_medium_and_matches_cycles(tmp_path: Path) -> Non
         assert fog["scattering"] == pytest.approx([0.24, 0.24, 0.24])  # density × the default Color 0.8
         out = tmp_path / "out"
         assert bpy.ops.tyndall.compute_volumetrics("EXEC_DEFAULT", directory=str(out)) == {"FINISHED"}
-        got = exr_channels(str(out / "volumetrics.exr"))["inscatter"].astype("float64")
-        ref = np.asarray(cycles, dtype="float64")
-        report = json.loads((out / "report.json").read_text())
-        keep = np.ones(ref.shape[:2], dtype=bool)
-        for x, y in report["stats"].get("light_images", []):
-            keep[max(0, int(y) - 2) : int(y) + 2, max(0, int(x) - 2) : int(x) + 2] = False
-        rmse = float(np.sqrt(np.mean((got[keep] - ref[keep]) ** 2)) / np.sqrt(np.mean(ref[keep] ** 2)))
-        ratio = float(got[keep].sum() / ref[keep].sum())
+        rmse, ratio, report = _against_cycles(out, cycles)
         print(f"fog box: relative RMSE {rmse:.3%}, Tyndall/Cycles sum {ratio:.4f}")
         assert rmse <= 0.03 and abs(ratio - 1.0) <= 0.01
         # Applied, the composite's surface render must not scatter in the fog box again: its
