@@ -553,7 +553,13 @@ def gather_fog_boxes(objects: list[RenderedObject], notes: list[str]) -> list[Me
         root = _volume_root(material)
         if root is None:
             continue
-        medium = _medium_of(root, f"fog volume '{ro.name}', material '{material.name}'", f"{ro.name}: ")
+        try:
+            medium = _medium_of(root, f"fog volume '{ro.name}', material '{material.name}'", f"{ro.name}: ")
+        except SceneInputError as e:
+            # (A textured density, say: the fog mesh was left out before boxes were read, so
+            # the export goes on without it rather than stopping.)
+            notes.append(f"{ro.name}: {e}; left out")
+            continue
         medium.material = material.name
         lo, hi = box
         medium.bounds = (

@@ -1387,10 +1387,17 @@ def test_a_fog_box_is_a_bounded_medium_and_matches_cycles(tmp_path: Path) -> Non
         assert [m["name"] for m in _built().scene["media"] if m["name"].startswith("Fog: ")] == ["Fog: Volume Scatter"]
         turned = _fog_box(sc, "Turned", (3.0, 0.0, 1.0), (1.0, 1.0, 1.0), 0.3)
         turned.rotation_euler = (0.0, 0.0, 0.3)
+        # A textured density is no homogeneous medium: that box is left out with a note, and
+        # the export goes on (before boxes were read, every fog mesh was left out).
+        textured = _fog_box(sc, "Textured", (-3.0, 0.0, 1.0), (1.0, 1.0, 1.0), 0.3)
+        tree = textured.data.materials[0].node_tree
+        noise = tree.nodes.new("ShaderNodeTexNoise")
+        tree.links.new(noise.outputs["Fac"], tree.nodes["Volume Scatter"].inputs["Density"])
         bpy.context.view_layer.update()
         built = _built()
-        assert not any(m["name"].startswith("Turned: ") for m in built.scene["media"])
+        assert not any(m["name"].startswith(("Turned: ", "Textured: ")) for m in built.scene["media"])
         assert any(n.startswith("Turned: a fog volume that is not an axis-aligned box") for n in built.notes)
+        assert any(n.startswith("Textured: ") and n.endswith("left out") for n in built.notes), built.notes
     finally:
         blender_addon.unregister()
 
