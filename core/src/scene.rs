@@ -660,12 +660,19 @@ pub enum Bounds {
     /// Everywhere (Blender's world volume).
     #[default]
     World,
-    /// An axis-aligned box (a volume object such as a haze box around a stage).
+    /// A box (a volume object such as a haze box around a stage): the
+    /// axis-aligned box `min ≤ x ≤ max`, turned by `rotation_wxyz` about its
+    /// centre `(min + max)/2`.
     Box {
-        /// Minimum corner, m.
+        /// Minimum corner before the rotation, m.
         min: [f64; 3],
-        /// Maximum corner, m, each component > `min`.
+        /// Maximum corner before the rotation, m, each component > `min`.
         max: [f64; 3],
+        /// Rotation box → world about the box's centre, as a quaternion
+        /// `[w, x, y, z]`, non-zero (normalised on load). Default none
+        /// (faces along world X, Y, Z).
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        rotation_wxyz: Option<[f64; 4]>,
     },
 }
 
@@ -1551,7 +1558,13 @@ impl Validator {
                     self.coefficient("scattering", scattering);
                     self.coefficient("absorption", absorption);
                     self.phase("phase", phase);
-                    if let Bounds::Box { min, max } = bounds
+                    if let Bounds::Box {
+                        rotation_wxyz: Some(q), ..
+                    } = bounds
+                    {
+                        self.quaternion("bounds.box.rotation_wxyz", *q);
+                    }
+                    if let Bounds::Box { min, max, .. } = bounds
                         && self.vec3("bounds.box.min", *min)
                         && self.vec3("bounds.box.max", *max)
                     {

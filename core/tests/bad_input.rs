@@ -315,6 +315,14 @@ fn other_out_of_range_values_name_their_field() {
             "media[0].bounds.box.max[1]",
         ),
         (
+            r#","media":[{"type":"homogeneous","scattering":1,"bounds":{"box":{"min":[0,0,0],"max":[1,1,1],"rotation_wxyz":[0,0,0,0]}}}]"#,
+            "media[0].bounds.box.rotation_wxyz",
+        ),
+        (
+            r#","media":[{"type":"homogeneous","scattering":1,"bounds":{"box":{"min":[0,0,0],"max":[1,1,1],"rotation_wxyz":[1,0,"x",0]}}}]"#,
+            "media[0].bounds.box.rotation_wxyz[2]",
+        ),
+        (
             r#","lights":[{"type":"sun","direction_to_sun":[0,0,1],"strength_w_m2":-1}]"#,
             "lights[0].strength_w_m2",
         ),

@@ -433,6 +433,7 @@ fn homogeneous_world_closed_form_matches_quadrature() {
                     sigma_t: [k, 0.7 * k, 1.3 * k],
                     phase: [Phase::Iso, Phase::Hg(0.6), Phase::Hg(-0.3), Phase::Rayleigh, Phase::Murky][i % 5],
                     bounds: None,
+                    turn: None,
                 };
                 let lights = hom_lights(i);
                 let dir = dir_deg(elev, 7.0 * i as f64);
@@ -497,6 +498,8 @@ fn homogeneous_box_closed_form_matches_quadrature() {
                 sigma_t: [k, 0.7 * k, 1.3 * k],
                 phase: [Phase::Iso, Phase::Hg(0.6), Phase::Cs(0.8), Phase::Hazy][i % 4],
                 bounds: Some((lo, hi)),
+                // Every third case with the box turned about its centre.
+                turn: (i % 3 == 1).then(|| (DVec3::new(1.0, -2.0, 2.0).normalize(), 0.7)),
             };
             let lights = hom_lights(i);
             let dir = dir_deg(elev, azim);
@@ -764,12 +767,18 @@ fn homogeneous_through_renderer_matches_quadrature() {
     };
     let lo = DVec3::new(-20.0, 30.0, 0.0);
     let hi = DVec3::new(20.0, 70.0, 15.0);
-    for (name, bounds, k) in [("world", None, 0.004), ("box", Some((lo, hi)), 0.05)] {
+    let turned = Some((DVec3::new(0.2, 0.3, 1.0).normalize(), 0.6));
+    for (name, bounds, k, turn) in [
+        ("world", None, 0.004, None),
+        ("box", Some((lo, hi)), 0.05, None),
+        ("turned box", Some((lo, hi)), 0.05, turned),
+    ] {
         let model = HomogeneousModel {
             sigma_s: [0.7 * k, 0.8 * k, 0.9 * k],
             sigma_t: [k, 1.0 * k, 1.1 * k],
             phase: Phase::Hg(0.4),
             bounds,
+            turn,
         };
         let half = 500.0;
         let json = scene_json(
@@ -845,6 +854,7 @@ fn sun_disc_through_renderer_matches_disc_averaged_quadrature() {
         sigma_t: [1.5e-3, 1.5e-3, 1.5e-3],
         phase: Phase::Hg(0.95),
         bounds: None,
+        turn: None,
     };
     let eye = DVec3::new(0.0, 0.0, 10.0);
     let target = eye + to_sun * 1000.0;

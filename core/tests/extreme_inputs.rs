@@ -151,6 +151,7 @@ fn horizontal_rays_in_fog_layer_and_box() {
             sigma_t: [0.03, 0.04, 0.05],
             phase: Phase::Hg(0.5),
             bounds: Some((DVec3::new(-10.0, -10.0, 0.0), DVec3::new(10.0, 10.0, 5.0))),
+            turn: None,
         };
         let m = PreparedMedium::Homogeneous(model.lib());
         for z in [0.0, 2.5, 5.0] {
@@ -195,6 +196,7 @@ fn straight_up_and_straight_down() {
                     sigma_t: [0.02, 0.025, 0.031],
                     phase: Phase::Rayleigh,
                     bounds,
+                    turn: None,
                 };
                 let m = PreparedMedium::Homogeneous(model.lib());
                 let o = DVec3::ZERO;
@@ -254,6 +256,7 @@ fn optical_depth_1e_minus_9_is_the_single_scattering_limit() {
         sigma_t: [k, 0.95 * k, 0.9 * k],
         phase: Phase::Hg(0.3),
         bounds: None,
+        turn: None,
     };
     let d = dir_deg(12.0, 40.0);
     let r = run(&PreparedMedium::Homogeneous(model.lib()), DVec3::ZERO, d, s, &lights.lib(), "world");
@@ -342,6 +345,7 @@ fn optical_depth_1e4_saturates() {
             sigma_t: [k, 1.1 * k, 1.2 * k],
             phase: Phase::Murky,
             bounds: None,
+            turn: None,
         };
         let d = dir_deg(-5.0, 140.0);
         let r = run(
@@ -488,6 +492,7 @@ fn sun_exactly_at_0_and_90_degrees() {
                     sigma_t: [0.02, 0.02, 0.02],
                     phase: Phase::Hg(0.7),
                     bounds,
+                    turn: None,
                 };
                 let what = format!("homogeneous {bounds:?} sun {to_sun} elev {elev}");
                 let r = run(

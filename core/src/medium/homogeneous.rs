@@ -1,4 +1,5 @@
-//! Homogeneous medium, in the whole world or in an axis-aligned box.
+//! Homogeneous medium, in the whole world or in a box (axis-aligned, or
+//! turned about its centre).
 //!
 //! Single scattering along `[s₀, s₁]` (the part of the view ray inside the
 //! medium), Klassen eq 1.11 with constant coefficients:
@@ -18,12 +19,17 @@
 //!   [`crate::numeric::integral_exp_neg`], with the larger end factored out
 //!   when `k < 0` so that no positive exponent is ever formed.
 //!
+//! * **Turned box:** a rotation about the box's centre is an isometry, so a
+//!   ray `o + s·d` maps to `o' + s·d'` in the box's frame with the same `s`
+//!   (`o' = c + Rᵀ(o − c)`, `d' = Rᵀd`), and so does the sun direction; the
+//!   axis-aligned formulas above then apply unchanged in that frame.
+//!
 //! Error: closed form; rounding bound ≈ 32 ε relative per piece.
 
 use super::phase::PhaseFunction;
 use super::{LightSet, RayResult, ViewRay, rounding_bound, rounding_rel};
 use crate::numeric::{integral_exp_neg, one_minus_exp_neg};
-use glam::DVec3;
+use glam::{DMat3, DQuat, DVec3};
 
 /// Homogeneous medium with coefficients resolved to `C` channels.
 #[derive(Debug, Clone)]
@@ -36,8 +42,75 @@ pub struct Homogeneous<const C: usize> {
     pub extinction: [f64; C],
     /// Phase function.
     pub phase: PhaseFunction,
-    /// `None` for the world, `Some((min, max))` for a box.
-    pub bounds: Option<(DVec3, DVec3)>,
+    /// `None` for the world, `Some(box)` for a box.
+    pub bounds: Option<MediumBox>,
+}
+
+/// The extent of a box medium: `min ≤ q ≤ max` for the point `q` in the
+/// box's frame, the world turned about the box's centre.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct MediumBox {
+    /// Minimum corner in the box's frame, m.
+    pub min: DVec3,
+    /// Maximum corner in the box's frame, m.
+    pub max: DVec3,
+    /// World → box frame (`Rᵀ` of the rotation box → world); `None` for an
+    /// axis-aligned box, whose points are used as they are (no rounding
+    /// from a turn by the identity).
+    world_to_box: Option<DMat3>,
+}
+
+impl MediumBox {
+    /// The box `min ≤ x ≤ max` turned by `rotation` (box → world, unit) about its centre.
+    pub fn new(min: DVec3, max: DVec3, rotation: Option<DQuat>) -> Self {
+        let world_to_box = rotation.filter(|q| *q != DQuat::IDENTITY).map(|q| DMat3::from_quat(q).transpose());
+        MediumBox { min, max, world_to_box }
+    }
+
+    /// An axis-aligned box.
+    pub fn axis_aligned(min: DVec3, max: DVec3) -> Self {
+        Self::new(min, max, None)
+    }
+
+    /// Whether the box is turned.
+    pub fn is_rotated(&self) -> bool {
+        self.world_to_box.is_some()
+    }
+
+    /// The world point `p` in the box's frame.
+    #[inline]
+    pub fn local_point(&self, p: DVec3) -> DVec3 {
+        match self.world_to_box {
+            None => p,
+            Some(m) => {
+                let c = 0.5 * (self.min + self.max);
+                c + m * (p - c)
+            }
+        }
+    }
+
+    /// The world direction `d` in the box's frame.
+    #[inline]
+    pub fn local_dir(&self, d: DVec3) -> DVec3 {
+        match self.world_to_box {
+            None => d,
+            Some(m) => m * d,
+        }
+    }
+
+    /// Whether the world point `p` is inside (or on) the box.
+    #[inline]
+    pub fn contains(&self, p: DVec3) -> bool {
+        let q = self.local_point(p);
+        !(q.cmplt(self.min).any() || q.cmpgt(self.max).any())
+    }
+
+    /// Parametric interval `[t0, t1]` where the world ray `o + t·d` is inside
+    /// the box (`t` is the world parameter: the turn is an isometry).
+    #[inline]
+    pub fn ray_interval(&self, o: DVec3, d: DVec3) -> Option<(f64, f64)> {
+        ray_box(self.local_point(o), self.local_dir(d), self.min, self.max)
+    }
 }
 
 /// Parametric interval `[t0, t1]` where `o + t·d` is inside the box (slab method).
@@ -64,8 +137,8 @@ impl<const C: usize> Homogeneous<C> {
     pub fn segment(&self, ray: &ViewRay) -> Option<(f64, f64)> {
         match self.bounds {
             None => Some((0.0, ray.s_max)),
-            Some((min, max)) => {
-                let (a, b) = ray_box(ray.origin, ray.dir, min, max)?;
+            Some(b) => {
+                let (a, b) = b.ray_interval(ray.origin, ray.dir)?;
                 let s0 = a.max(0.0);
                 let s1 = b.min(ray.s_max);
                 if s1 > s0 { Some((s0, s1)) } else { None }
@@ -91,7 +164,7 @@ impl<const C: usize> Homogeneous<C> {
     fn sun_path(&self, p: DVec3, to_sun: DVec3) -> f64 {
         match self.bounds {
             None => 0.0,
-            Some((min, max)) => match ray_box(p, to_sun, min, max) {
+            Some(b) => match b.ray_interval(p, to_sun) {
                 Some((a, b)) => (b - a.max(0.0)).max(0.0),
                 None => 0.0,
             },
@@ -107,8 +180,8 @@ impl<const C: usize> Homogeneous<C> {
     /// Source σ_s J at distance `s` (zero outside the box).
     pub fn source(&self, ray: &ViewRay, s: f64, lights: &LightSet<C>) -> [f64; C] {
         let p = ray.origin + ray.dir * s;
-        if let Some((min, max)) = self.bounds
-            && (p.cmplt(min).any() || p.cmpgt(max).any())
+        if let Some(b) = self.bounds
+            && !b.contains(p)
         {
             return [0.0; C];
         }
@@ -147,8 +220,8 @@ impl<const C: usize> Homogeneous<C> {
                         }
                     }
                 }
-                Some((min, max)) => {
-                    let integral = self.attenuated_sun_integral(ray, s0, s1, sun.to_sun, min, max);
+                Some(b) => {
+                    let integral = self.attenuated_sun_integral(ray, s0, s1, sun.to_sun, &b);
                     for c in 0..C {
                         r.inscatter[c] += self.scattering[c] * ph * sun.irradiance[c] * integral[c];
                     }
@@ -163,14 +236,17 @@ impl<const C: usize> Homogeneous<C> {
     }
 
     /// `∫_{s0}^{s1} e^{−σ_t (s − s0) − σ_t d(s)} ds` per channel, `d(s)` the
-    /// sun path inside the box: piecewise linear, integrated piece by piece.
-    fn attenuated_sun_integral(&self, ray: &ViewRay, s0: f64, s1: f64, to_sun: DVec3, min: DVec3, max: DVec3) -> [f64; C] {
+    /// sun path inside the box: piecewise linear, integrated piece by piece
+    /// (in the box's frame, where the slabs are along the axes).
+    fn attenuated_sun_integral(&self, ray: &ViewRay, s0: f64, s1: f64, to_sun: DVec3, b: &MediumBox) -> [f64; C] {
+        let (min, max) = (b.min, b.max);
+        let (origin, dir, to_sun) = (b.local_point(ray.origin), b.local_dir(ray.dir), b.local_dir(to_sun));
         // f_i(s) = a_i + b_i s: distance along to_sun to the exit plane of slab i.
         let mut lines: Vec<(f64, f64)> = Vec::with_capacity(3);
         for i in 0..3 {
             if to_sun[i] != 0.0 {
                 let bound = if to_sun[i] > 0.0 { max[i] } else { min[i] };
-                lines.push(((bound - ray.origin[i]) / to_sun[i], -ray.dir[i] / to_sun[i]));
+                lines.push(((bound - origin[i]) / to_sun[i], -dir[i] / to_sun[i]));
             }
         }
         let mut breaks = vec![s0, s1];
@@ -230,7 +306,7 @@ mod tests {
             scattering: [0.05, 0.1, 0.2],
             extinction: [0.1, 0.2, 0.4],
             phase: PhaseFunction::HenyeyGreenstein { g: 0.3 },
-            bounds: Some((DVec3::new(-2.0, -3.0, 0.0), DVec3::new(4.0, 3.0, 5.0))),
+            bounds: Some(MediumBox::axis_aligned(DVec3::new(-2.0, -3.0, 0.0), DVec3::new(4.0, 3.0, 5.0))),
         };
         let lights = LightSet {
             suns: vec![SunSource::point(DVec3::new(0.3, -0.2, 0.9).normalize(), [1.0, 2.0, 3.0])],

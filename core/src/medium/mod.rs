@@ -175,8 +175,8 @@ impl<const C: usize> PreparedMedium<C> {
     pub fn scattering_phase_at(&self, p: DVec3, mu: f64) -> [f64; C] {
         match self {
             PreparedMedium::Homogeneous(m) => {
-                if let Some((min, max)) = m.bounds
-                    && (p.cmplt(min).any() || p.cmpgt(max).any())
+                if let Some(b) = m.bounds
+                    && !b.contains(p)
                 {
                     return [0.0; C];
                 }

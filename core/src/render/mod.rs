@@ -34,7 +34,7 @@ use crate::medium::ellipsoid::Ellipsoid;
 use crate::medium::fog_layer::FogLayer;
 use crate::medium::height_field_layer::{HeightFieldLayer, Side, Wave};
 use crate::medium::height_fog::HeightFog;
-use crate::medium::homogeneous::Homogeneous;
+use crate::medium::homogeneous::{Homogeneous, MediumBox};
 use crate::medium::phase::PhaseFunction;
 use crate::medium::{LightSet, PreparedMedium, RayResult, SunSource, ViewRay};
 use crate::numeric::integrate_adaptive;
@@ -916,13 +916,21 @@ fn prepare_media<const C: usize>(scene: &Scene, lights: &LightSet<C>, report: &m
                 let ext = add(s, resolve::<C>(absorption));
                 let b = match bounds {
                     Bounds::World => None,
-                    Bounds::Box { min, max } => Some((DVec3::from(*min), DVec3::from(*max))),
+                    Bounds::Box { min, max, rotation_wxyz } => Some(MediumBox::new(
+                        DVec3::from(*min),
+                        DVec3::from(*max),
+                        rotation_wxyz.map(crate::scene::quat_wxyz),
+                    )),
                 };
                 report.plan.computed(
                     label.clone(),
                     format!(
                         "homogeneous, {}, phase {}: closed form (Klassen eq 1.11 with constant coefficients{})",
-                        if b.is_some() { "box" } else { "world" },
+                        match &b {
+                            None => "world",
+                            Some(b) if b.is_rotated() => "rotated box",
+                            Some(_) => "box",
+                        },
                         phase.describe(),
                         if b.is_some() {
                             "; sun attenuated inside the box, piecewise exact"

@@ -291,8 +291,8 @@ fn plain_media<const C: usize>(media: &[PreparedMedium<C>], ray: &ViewRay, light
         let PreparedMedium::Homogeneous(h) = m else {
             return None;
         };
-        if let Some((min, max)) = h.bounds {
-            if light.cmplt(min).any() || light.cmpgt(max).any() {
+        if let Some(b) = h.bounds {
+            if !b.contains(light) {
                 return None;
             }
             let (s0, s1) = h.segment(ray)?;

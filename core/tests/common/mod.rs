@@ -723,6 +723,15 @@ pub struct HomogeneousModel {
     pub phase: Phase,
     /// Box corners, or `None` for the world.
     pub bounds: Option<(DVec3, DVec3)>,
+    /// The box turned about its centre: unit axis and angle, rad (box → world).
+    pub turn: Option<(DVec3, f64)>,
+}
+
+/// `v` turned by `angle` about the unit `axis` (Rodrigues' formula; written
+/// out here so that the model does not share the library's quaternion code).
+pub fn rodrigues(v: DVec3, axis: DVec3, angle: f64) -> DVec3 {
+    let (s, c) = angle.sin_cos();
+    v * c + axis.cross(v) * s + axis * (axis.dot(v) * (1.0 - c))
 }
 
 /// Exit distance from a point inside a box along `d`, and the axis of the exit face.
@@ -761,10 +770,36 @@ pub fn box_span(o: DVec3, d: DVec3, lo: DVec3, hi: DVec3) -> Option<(f64, f64)> 
 }
 
 impl HomogeneousModel {
+    /// A world point in the box's frame (turned back about the centre).
+    fn box_point(&self, p: DVec3) -> DVec3 {
+        match (self.bounds, self.turn) {
+            (Some((lo, hi)), Some((axis, angle))) => {
+                let c = 0.5 * (lo + hi);
+                c + rodrigues(p - c, axis, -angle)
+            }
+            _ => p,
+        }
+    }
+
+    /// A world direction in the box's frame.
+    fn box_dir(&self, d: DVec3) -> DVec3 {
+        match self.turn {
+            Some((axis, angle)) => rodrigues(d, axis, -angle),
+            None => d,
+        }
+    }
+
     fn inside(&self, p: DVec3) -> bool {
         match self.bounds {
             None => true,
-            Some((lo, hi)) => p.cmpge(lo).all() && p.cmple(hi).all(),
+            Some((lo, hi)) => {
+                // A turned box's faces are found to within rounding: a ray's
+                // entry point, where the step size is chosen, must count as
+                // inside (the faces themselves have measure zero).
+                let slack = if self.turn.is_some() { 1e-9 * (hi - lo).max_element() } else { 0.0 };
+                let q = self.box_point(p);
+                q.cmpge(lo - slack).all() && q.cmple(hi + slack).all()
+            }
         }
     }
 
@@ -789,7 +824,7 @@ impl HomogeneousModel {
             for (to_sun, ph, e) in &suns {
                 let d = match self.bounds {
                     None => 0.0, // world: sun unattenuated (Ishiyama eq 11)
-                    Some((lo, hi)) => box_exit(p, *to_sun, lo, hi).0,
+                    Some((lo, hi)) => box_exit(self.box_point(p), self.box_dir(*to_sun), lo, hi).0,
                 };
                 for c in 0..3 {
                     j[c] += ph * e[c] * (-st[c] * d).exp();
@@ -800,7 +835,7 @@ impl HomogeneousModel {
         let mut breaks = vec![];
         let mut span_end = f64::INFINITY;
         if let Some((lo, hi)) = self.bounds {
-            if let Some((a, b)) = box_span(origin, dir, lo, hi) {
+            if let Some((a, b)) = box_span(self.box_point(origin), self.box_dir(dir), lo, hi) {
                 breaks.push(a);
                 breaks.push(b);
                 span_end = b;
@@ -810,7 +845,7 @@ impl HomogeneousModel {
                 let (s0, s1) = (a.max(0.0), b.min(s_max));
                 if s1 > s0 {
                     for (to_sun, _, _) in &suns {
-                        let face = |s: f64| box_exit(at((0.0, s)), *to_sun, lo, hi).1;
+                        let face = |s: f64| box_exit(self.box_point(at((0.0, s))), self.box_dir(*to_sun), lo, hi).1;
                         find_switches(&face, s0, s1, face(s0), face(s1), &mut breaks);
                     }
                 }
@@ -862,7 +897,13 @@ impl HomogeneousModel {
             scattering: self.sigma_s,
             extinction: self.sigma_t,
             phase: self.phase.lib(),
-            bounds: self.bounds,
+            bounds: self.bounds.map(|(lo, hi)| {
+                tyndall_core::medium::homogeneous::MediumBox::new(
+                    lo,
+                    hi,
+                    self.turn.map(|(axis, angle)| glam::DQuat::from_axis_angle(axis, angle)),
+                )
+            }),
         }
     }
 
@@ -871,7 +912,16 @@ impl HomogeneousModel {
         let abs: [f64; 3] = std::array::from_fn(|c| self.sigma_t[c] - self.sigma_s[c]);
         let bounds = match self.bounds {
             None => r#""world""#.to_string(),
-            Some((lo, hi)) => format!(r#"{{"box":{{"min":{},"max":{}}}}}"#, arr(lo.to_array()), arr(hi.to_array())),
+            Some((lo, hi)) => {
+                let turn = match self.turn {
+                    Some((axis, angle)) => {
+                        let (s, c) = (0.5 * angle).sin_cos();
+                        format!(r#","rotation_wxyz":[{c:e},{:e},{:e},{:e}]"#, s * axis.x, s * axis.y, s * axis.z)
+                    }
+                    None => String::new(),
+                };
+                format!(r#"{{"box":{{"min":{},"max":{}{turn}}}}}"#, arr(lo.to_array()), arr(hi.to_array()))
+            }
         };
         format!(
             r#"{{"type":"homogeneous","scattering":{},"absorption":{},"phase":{},"bounds":{}}}"#,
