@@ -16,6 +16,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 
 pytest.importorskip("pxr")
@@ -274,6 +275,86 @@ def test_a_boxed_medium_round_trips_through_write_stage(tmp_path: Path) -> None:
     cube = written.GetPrimAtPath("/root/Fog__Volume_Scatter/box")
     assert UsdGeom.Imageable(cube).GetPurposeAttr().Get() == UsdGeom.Tokens.guide  # no surface in Blender
     _validate(again)
+
+
+def _turn(q: list[float], v: list[float]) -> np.ndarray:
+    """``v`` turned by the quaternion ``[w, x, y, z]``, by the rotation-matrix formula."""
+    w, x, y, z = np.asarray(q, dtype=float) / np.linalg.norm(q)
+    r = np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+    return r @ np.asarray(v, dtype=float)
+
+
+def _medium_box(tmp_path: Path, ops: Any) -> tuple[dict[str, Any], list[str]]:
+    """A haze Cube placed by ``ops(xformable)``, read back: its ``bounds.box`` and the notes."""
+    stage = _stage(tmp_path)
+    cube = UsdGeom.Cube.Define(stage, "/World/Haze")
+    ops(UsdGeom.Xformable(cube.GetPrim()))
+    p = cube.GetPrim()
+    p.CreateAttribute("tyndall:medium:type", Sdf.ValueTypeNames.Token).Set("homogeneous")
+    p.CreateAttribute("tyndall:medium:scattering", Sdf.ValueTypeNames.Double).Set(0.1)
+    p.CreateAttribute("tyndall:medium:bounds", Sdf.ValueTypeNames.Token).Set("box")
+    conv = convert_stage(stage)
+    (med,) = conv.scene["media"]
+    _validate(conv.scene)
+    return med["bounds"]["box"], conv.notes
+
+
+def test_a_turned_box_medium_is_read_as_the_turned_box(tmp_path: Path) -> None:
+    """A Cube turned 30° about Z (and scaled 2 × 1 × 0.5) bounds the medium by that turned box,
+    not by its larger axis-aligned bound (as before)."""
+
+    def place(xf: UsdGeom.Xformable) -> None:
+        xf.AddTranslateOp().Set(Gf.Vec3d(1.0, 2.0, 3.0))
+        xf.AddRotateXYZOp().Set(Gf.Vec3f(0.0, 0.0, 30.0))
+        xf.AddScaleOp().Set(Gf.Vec3f(2.0, 1.0, 0.5))
+
+    box, _ = _medium_box(tmp_path, place)
+    assert _close(box["min"], [-1.0, 1.0, 2.5], 1e-6) and _close(box["max"], [3.0, 3.0, 3.5], 1e-6)
+    c30, s30 = math.cos(math.radians(30.0)), math.sin(math.radians(30.0))
+    assert np.allclose(_turn(box["rotation_wxyz"], [1, 0, 0]), [c30, s30, 0.0], atol=1e-6)
+    assert np.allclose(_turn(box["rotation_wxyz"], [0, 0, 1]), [0.0, 0.0, 1.0], atol=1e-6)
+
+
+def test_an_unturned_or_sheared_box_medium_keeps_its_aligned_bound(tmp_path: Path) -> None:
+    """A box turned by a multiple of 90° is an axis-aligned box (no rotation written); a sheared
+    one has no box form, so its world-space axis-aligned bound is used, with a note naming it."""
+
+    def quarter(xf: UsdGeom.Xformable) -> None:
+        xf.AddRotateZOp().Set(90.0)
+        xf.AddScaleOp().Set(Gf.Vec3f(2.0, 1.0, 0.5))
+
+    box, _ = _medium_box(tmp_path, quarter)
+    assert "rotation_wxyz" not in box
+    assert _close(box["min"], [-1.0, -2.0, -0.5], 1e-6) and _close(box["max"], [1.0, 2.0, 0.5], 1e-6)
+
+    def sheared(xf: UsdGeom.Xformable) -> None:
+        xf.AddTransformOp().Set(Gf.Matrix4d(1, 0, 0, 0, 0.5, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1))
+
+    box, notes = _medium_box(tmp_path / "s", sheared)
+    assert "rotation_wxyz" not in box
+    assert _close(box["min"], [-1.5, -1.0, -1.0], 1e-9) and _close(box["max"], [1.5, 1.0, 1.0], 1e-9)
+    assert any("/World/Haze" in n and "sheared" in n for n in notes), notes
+
+
+def test_a_turned_boxed_medium_round_trips_through_write_stage(tmp_path: Path) -> None:
+    """``write_stage`` turns the box's Cube with an orient op; the reader gives the same box back."""
+    scene = json.loads((DATA.parent.parent.parent / "examples" / "stage_four_spots.json").read_text())
+    q = [math.cos(0.35), 0.6 * math.sin(0.35), 0.0, 0.8 * math.sin(0.35)]
+    box = {"min": [-0.8, -0.75, 0.5], "max": [1.2, 0.8, 1.9], "rotation_wxyz": q}
+    scene["media"].append({"type": "homogeneous", "name": "Turned", "scattering": 0.2, "bounds": {"box": box}})
+    _validate(scene)
+    assert write_stage(scene, str(tmp_path / "turned.usda")) == []
+    (fog,) = [m for m in convert_stage(str(tmp_path / "turned.usda")).scene["media"] if m["name"] == "Turned"]
+    back = fog["bounds"]["box"]
+    assert _close(back["min"], box["min"], 1e-9) and _close(back["max"], box["max"], 1e-9)
+    for v in ([1, 0, 0], [0, 1, 0], [0, 0, 1]):
+        assert np.allclose(_turn(back["rotation_wxyz"], v), _turn(q, v), atol=1e-9)
 
 
 def test_color_temperature_outside_blender_exports(tmp_path: Path) -> None:

@@ -56,6 +56,39 @@ def frame_quaternion(m: Gf.Matrix4d) -> list[float]:
     return [float(q.GetReal()), float(im[0]), float(im[1]), float(im[2])]
 
 
+def turned_box(m: Gf.Matrix4d, lo: Gf.Vec3d, hi: Gf.Vec3d) -> tuple[dict[str, list[float]] | None, str]:
+    """Tyndall's ``bounds.box`` of the local box ``[lo, hi]`` placed by ``m`` (local → world).
+
+    When ``m`` turns the box (its axes are orthogonal but not along the world's), the box with
+    ``rotation_wxyz`` about its centre and ``""``. Otherwise ``None`` and why: ``"aligned"``
+    (the world-space axis-aligned bound is then exact) or ``"sheared"`` (no box matches). The
+    axes must be orthogonal to 1e-6 relative: float32 matrices (Blender's export) are.
+    """
+    axes = [axis(m, i) for i in range(3)]
+    lens = [a.GetLength() for a in axes]
+    if not all(math.isfinite(n) and n > 0.0 for n in lens):
+        return None, "sheared"
+    for i, j in ((0, 1), (0, 2), (1, 2)):
+        if abs(Gf.Dot(axes[i], axes[j])) > 1e-6 * lens[i] * lens[j]:
+            return None, "sheared"
+    u = [axes[i] / lens[i] for i in range(3)]
+    if all(sum(abs(c) > 1e-12 for c in ui) == 1 for ui in u):
+        return None, "aligned"
+    if Gf.Dot(Gf.Cross(u[0], u[1]), u[2]) < 0.0:
+        u[0] = -u[0]  # a mirrored box is the same box: keep a proper rotation
+    r = Gf.Matrix3d(*u[0], *u[1], *u[2])
+    q = r.ExtractRotation().GetQuat()
+    im = q.GetImaginary()
+    centre = m.Transform((lo + hi) * 0.5)
+    half = [(hi[i] - lo[i]) * 0.5 * lens[i] for i in range(3)]
+    box = {
+        "min": [float(centre[i] - half[i]) for i in range(3)],
+        "max": [float(centre[i] + half[i]) for i in range(3)],
+        "rotation_wxyz": [float(q.GetReal()), float(im[0]), float(im[1]), float(im[2])],
+    }
+    return box, ""
+
+
 def mean_axis_scale(m: Gf.Matrix4d) -> float:
     """Mean length of the images of the three local axes (the light-radius scale)."""
     return sum(axis(m, i).GetLength() for i in range(3)) / 3.0

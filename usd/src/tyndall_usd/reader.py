@@ -631,7 +631,27 @@ class _Converter:
     def box(self, prim: Usd.Prim) -> dict[str, list[float]]:
         # Every purpose: the box's geometry is a helper, and may be a guide (write_stage's is).
         every = [UsdGeom.Tokens.default_, UsdGeom.Tokens.render, UsdGeom.Tokens.proxy, UsdGeom.Tokens.guide]
-        rng = UsdGeom.BBoxCache(self.time, every).ComputeWorldBound(prim).ComputeAlignedRange()
+        cache = UsdGeom.BBoxCache(self.time, every)
+        # One geometry prim, turned with its transform: the box turned with it.
+        geometry = [p for p in Usd.PrimRange(prim) if p.IsA(UsdGeom.Gprim)]
+        if len(geometry) == 1:
+            bound = cache.ComputeWorldBound(geometry[0])
+            local = bound.GetRange()
+            if not local.IsEmpty():
+                turned, why = _geom.turned_box(bound.GetMatrix() * self.to_world, local.GetMin(), local.GetMax())
+                if turned is not None:
+                    return turned
+                if why == "sheared":
+                    self.notes.append(
+                        f"{prim.GetPath()}: the medium's box is sheared by its transform; "
+                        "its world-space axis-aligned bounding box is used"
+                    )
+        elif len(geometry) > 1:
+            self.notes.append(
+                f"{prim.GetPath()}: the medium has {len(geometry)} geometry prims; "
+                "their common world-space axis-aligned bounding box is its box"
+            )
+        rng = cache.ComputeWorldBound(prim).ComputeAlignedRange()
         if rng.IsEmpty():
             raise UsdSceneError(str(prim.GetPath()), NS + "medium:bounds", "'box' needs a prim with geometry (extent)")
         corners = [self.to_world.Transform(rng.GetCorner(i)) for i in range(8)]

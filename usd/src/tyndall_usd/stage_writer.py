@@ -21,7 +21,7 @@ meshes a Blender user had (the Blender → USD → Scene → USD → Blender rou
   the aperture has the image's aspect on the fitted side; ``tyndall:output:resolution``.
 * homogeneous and height-fog media → an ``Xform`` with the ``tyndall:medium:*`` attributes; a
   homogeneous medium with box bounds also gets ``tyndall:medium:bounds = "box"`` and a child
-  ``Cube`` spanning the box.
+  ``Cube`` spanning the box (turned by an orient op when the box has ``rotation_wxyz``).
 
 Stage: ``upAxis = Z``, ``metersPerUnit = 1``, default prim ``/root``. What UsdLux cannot
 hold (window lights, Nishita and tabulated distributions, fog layers, ellipsoids,
@@ -299,6 +299,11 @@ def write_stage(
             cube = UsdGeom.Cube.Define(stage, f"{ROOT}/{name}/box")
             cube.CreatePurposeAttr(UsdGeom.Tokens.guide)
             cube.AddTranslateOp(UsdGeom.XformOp.PrecisionDouble).Set((lo + hi) * 0.5)
+            turn = box.get("rotation_wxyz")
+            if turn is not None:
+                # Turned about the box's centre: translate · orient · scale.
+                w, x, y, z = (float(v) for v in turn)
+                cube.AddOrientOp(UsdGeom.XformOp.PrecisionDouble).Set(Gf.Quatd(w, x, y, z).GetNormalized())
             cube.AddScaleOp(UsdGeom.XformOp.PrecisionDouble).Set((hi - lo) * 0.5)
     stage.GetRootLayer().Save()
     return notes
