@@ -511,6 +511,33 @@ def _axis_aligned_box(world: np.ndarray, triangles: np.ndarray) -> tuple[np.ndar
     return lo, hi
 
 
+def _turned_box(
+    local: np.ndarray, triangles: np.ndarray, m: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, tuple[float, float, float, float]] | None:
+    """``(min, max, rotation_wxyz)`` of Tyndall's turned box when the mesh is an axis-aligned box
+    in its own coordinates (``local``) and the object's matrix ``m`` turns and scales it without
+    shear: the box about its world centre; else ``None``."""
+    box = _axis_aligned_box(local, triangles)
+    if box is None:
+        return None
+    try:
+        frame = cv.frame_from_rows(m[:3, :3].tolist())
+    except cv.ConversionError:
+        return None
+    # A parent's non-uniform scale shears a turned child: no box then. (float32 matrices are
+    # perpendicular to ≈ 1e-5°.)
+    if frame.shear_deg > 1e-3:
+        return None
+    lengths = np.asarray(frame.scale)
+    axes = m[:3, :3] / lengths  # unit columns
+    if frame.mirrored:
+        axes[:, 0] = -axes[:, 0]  # a mirrored box is the same box
+    lo, hi = box
+    centre = m[:3, :3] @ (0.5 * (lo + hi)) + m[:3, 3]
+    half = 0.5 * (hi - lo) * lengths
+    return centre - half, centre + half, cv.quaternion_wxyz_from_rows(axes.tolist())
+
+
 def _fog_materials(obj: bpy.types.Object) -> list[bpy.types.Material] | None:
     """The materials of a geometry object whose every material has only a Volume output
     (a fog volume, no surface); ``None`` for anything else."""
@@ -522,9 +549,10 @@ def _fog_materials(obj: bpy.types.Object) -> list[bpy.types.Material] | None:
 
 def gather_fog_boxes(objects: list[RenderedObject], notes: list[str]) -> list[MediumData]:
     """Meshes whose material has only a Volume output (fog volumes) as homogeneous media
-    bounded by their box, where the mesh is an axis-aligned box in world space (Tyndall's
-    bounded media are boxes); others are left out with a note. Cycles fills a closed mesh's
-    inside with its material's volume, over the world volume's (the coefficients add)."""
+    bounded by their box, where the mesh is a box: axis-aligned in world space, or in its own
+    coordinates and turned and scaled by its object (Tyndall's bounded media are boxes); others
+    are left out with a note. Cycles fills a closed mesh's inside with its material's volume,
+    over the world volume's (the coefficients add)."""
     out = []
     for ro in objects:
         materials = _fog_materials(ro.original)
@@ -537,16 +565,20 @@ def gather_fog_boxes(objects: list[RenderedObject], notes: list[str]) -> list[Me
         if not obj.visible_camera:
             notes.append(f"{ro.name}: a fog volume with Ray Visibility > Camera off is not exported; left out")
             continue
-        box = None
+        box, turn = None, None
         if ro.geometry is not None:
             positions, triangles = ro.geometry
             m = np.asarray(_rows(ro.matrix), dtype=np.float64)
-            world = np.asarray(positions, dtype=np.float64).reshape(-1, 3) @ m[:3, :3].T + m[:3, 3]
-            box = _axis_aligned_box(world, np.asarray(triangles).reshape(-1, 3))
+            local = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
+            tris = np.asarray(triangles).reshape(-1, 3)
+            box = _axis_aligned_box(local @ m[:3, :3].T + m[:3, 3], tris)
+            turned = _turned_box(local, tris, m) if box is None else None
+            if turned is not None:
+                box, turn = turned[:2], turned[2]
         if box is None:
             notes.append(
-                f"{ro.name}: a fog volume that is not an axis-aligned box in world space (Tyndall's bounded "
-                "media are boxes); left out"
+                f"{ro.name}: a fog volume that is not a box (Tyndall's bounded media are boxes: a box mesh, "
+                "turned and scaled by its object, not sheared by a parent's scale); left out"
             )
             continue
         material = materials[0]
@@ -566,6 +598,7 @@ def gather_fog_boxes(objects: list[RenderedObject], notes: list[str]) -> list[Me
             (float(lo[0]), float(lo[1]), float(lo[2])),
             (float(hi[0]), float(hi[1]), float(hi[2])),
         )
+        medium.rotation = turn
         out.append(medium)
     return out
 

@@ -79,9 +79,11 @@ class MediumData:
     scattering: tuple[float, float, float]
     absorption: tuple[float, float, float] = (0.0, 0.0, 0.0)
     phase: dict[str, Any] = field(default_factory=lambda: {"type": "isotropic"})
-    # A volume object's axis-aligned box in world space (min, max corners, Blender units);
+    # A volume object's box in world space (min, max corners before `rotation`, Blender units);
     # None: the world volume, everywhere.
     bounds: tuple[tuple[float, float, float], tuple[float, float, float]] | None = None
+    # The box's rotation about its centre, quaternion [w, x, y, z]; None: axis-aligned.
+    rotation: tuple[float, float, float, float] | None = None
     material: str = ""  # a fog box's material (muted with the world volume for the surface render)
 
 
@@ -404,6 +406,10 @@ def build_scene(data: SceneData) -> BuiltScene:
             if not all(a < b for a, b in zip(lo, hi, strict=True)):
                 raise SceneInputError(f"medium '{m.node}': its box is empty ({lo} .. {hi})")
             entry["bounds"] = {"box": {"min": lo, "max": hi}}
+            if m.rotation is not None:
+                entry["bounds"]["box"]["rotation_wxyz"] = [
+                    cv.finite(f"medium '{m.node}' rotation", float(v)) for v in m.rotation
+                ]
         media.append(entry)
     if all(max(m["scattering"]) + max(m["absorption"]) <= 0.0 for m in media):
         raise SceneInputError("the world volume has zero density: nothing to compute")
