@@ -599,6 +599,7 @@ def gather_fog_boxes(objects: list[RenderedObject], notes: list[str]) -> list[Me
             (float(hi[0]), float(hi[1]), float(hi[2])),
         )
         medium.rotation = turn
+        medium.source = obj.name
         out.append(medium)
     return out
 

@@ -266,7 +266,8 @@ class TYNDALL_OT_generate_sky(_JobOperator, bpy.types.Operator):
 def _export_usd(context: bpy.types.Context, path: str, built: BuiltScene) -> str:
     """Blender's own USD exporter, with the medium and output as ``tyndall:`` custom properties.
 
-    A temporary Empty carries ``tyndall:medium:*`` (tyndall_usd reads it as the medium), the
+    A temporary Empty carries ``tyndall:medium:*`` (tyndall_usd reads it as the medium), each
+    fog box's object its own with ``tyndall:medium:bounds = "box"``, the
     camera ``tyndall:output:*``, each IES light's data ``tyndall:ies:file``/``strength``, a lamp
     without Cast Shadow ``tyndall:castsShadows`` and a mesh object without Ray Visibility Camera
     or Shadow ``tyndall:visibleToCamera``/``castsShadows``; all are removed again. Returns "" or
@@ -290,12 +291,23 @@ def _export_usd(context: bpy.types.Context, path: str, built: BuiltScene) -> str
     # scale: per Blender unit again here (at unit scale 0.01 the stage had 100× the density).
     per_unit = float(scene.unit_settings.scale_length)
     try:
-        setp(empty, "tyndall:medium:type", "homogeneous")
-        setp(empty, "tyndall:medium:scattering", [v * per_unit for v in med["scattering"]])
-        setp(empty, "tyndall:medium:absorption", [v * per_unit for v in med["absorption"]])
-        setp(empty, "tyndall:medium:phase", med["phase"]["type"])
-        if "g" in med["phase"]:
-            setp(empty, "tyndall:medium:phaseG", float(med["phase"]["g"]))
+        def medium_props(idb: Any, m: dict[str, Any]) -> None:
+            setp(idb, "tyndall:medium:type", "homogeneous")
+            setp(idb, "tyndall:medium:name", m["name"])
+            setp(idb, "tyndall:medium:scattering", [v * per_unit for v in m["scattering"]])
+            setp(idb, "tyndall:medium:absorption", [v * per_unit for v in m["absorption"]])
+            setp(idb, "tyndall:medium:phase", m["phase"]["type"])
+            if "g" in m["phase"]:
+                setp(idb, "tyndall:medium:phaseG", float(m["phase"]["g"]))
+
+        medium_props(empty, med)
+        # A fog box's object carries its medium too, with bounds = "box": tyndall_usd then reads
+        # its mesh as the medium's (turned) box, not as an occluder.
+        for i, name in built.fog_objects.items():
+            fobj = scene.objects.get(name)
+            if fobj is not None:
+                medium_props(fobj, built.scene["media"][i])
+                setp(fobj, "tyndall:medium:bounds", "box")
         # Blender's exporter writes no IES shaping: the profile goes on the light data (exported
         # onto the SphereLight prim), where tyndall_usd reads it.
         by_scene_name = {v: k for k, v in built.light_names.items()}

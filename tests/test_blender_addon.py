@@ -567,6 +567,40 @@ json.dump({"scene": conv.scene, "skipped": conv.skipped, "notes": notes}, open(s
 """
 
 
+def test_export_stage_writes_fog_boxes_as_media(addon: None, tmp_path: Path) -> None:
+    """*Export Stage* with a turned fog box: its object carries ``tyndall:medium:*`` with
+    ``bounds = "box"``, so tyndall_usd reads it back as the same medium and turned box as the
+    add-on's scene.json, and not as an occluder. Before, Blender's exporter wrote the fog box
+    as a plain mesh, which the stage then had as a surface casting shadows."""
+    import numpy as np
+
+    usd_py = _usd_python()
+    make_scene()
+    sc = bpy.context.scene
+    fog = _fog_box(sc, "Fog", (0.5, 1.0, 1.5), (2.0, 1.5, 1.0), 0.2)
+    fog.rotation_euler = (0.1, 0.3, -0.4)
+    bpy.context.view_layer.update()
+    out = tmp_path / "shot"
+    assert bpy.ops.tyndall.export_stage("EXEC_DEFAULT", directory=str(out)) == {"FINISHED"}
+    assert "tyndall:medium:bounds" not in fog  # the temporary properties are gone again
+    (tmp_path / "leg.py").write_text(_USD_LEG)
+    files = (tmp_path / "leg.py", out / "stage.usda", tmp_path / "rt.usda", tmp_path / "c.json")
+    cmd = [usd_py, *(str(f) for f in files)]
+    r = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr[-3000:]
+    leg = json.loads((tmp_path / "c.json").read_text())
+    direct = json.loads((out / "scene.json").read_text())
+    (want,) = [m for m in direct["media"] if "bounds" in m]
+    (got,) = [m for m in leg["scene"]["media"] if "bounds" in m]
+    assert got["name"] == want["name"] and got["phase"] == want["phase"]
+    assert got["scattering"] == pytest.approx(want["scattering"], rel=1e-6)
+    wb, gb = want["bounds"]["box"], got["bounds"]["box"]
+    assert gb["min"] == pytest.approx(wb["min"], abs=1e-5) and gb["max"] == pytest.approx(wb["max"], abs=1e-5)
+    # The same rotation (a quaternion and its negative are one rotation).
+    assert abs(float(np.dot(gb["rotation_wxyz"], wb["rotation_wxyz"]))) == pytest.approx(1.0, abs=1e-9)
+    assert sorted(m["name"] for m in leg["scene"]["meshes"]) == sorted(m["name"] for m in direct["meshes"])
+
+
 def test_round_trip_through_usd_keeps_every_light_type(addon: None, tmp_path: Path) -> None:
     """Issue 5, round trip: a Blender scene (spot with an IES file, point, sun, camera) → the
     add-on's stage.usda (Blender's exporter + tyndall: properties) → Scene (tyndall_usd) → USD

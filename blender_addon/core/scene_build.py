@@ -85,6 +85,7 @@ class MediumData:
     # The box's rotation about its centre, quaternion [w, x, y, z]; None: axis-aligned.
     rotation: tuple[float, float, float, float] | None = None
     material: str = ""  # a fog box's material (muted with the world volume for the surface render)
+    source: str = ""  # a fog box's object (Export Stage marks it as the medium's box)
 
 
 @dataclass
@@ -151,6 +152,8 @@ class BuiltScene:
     # Materials of the fog boxes exported as media: the surface render of the composite mutes
     # their Volume as it does the world's (else the haze in them would count twice).
     fog_materials: list[str] = field(default_factory=list)
+    # Fog box media: their index in scene["media"] → the Blender object that is their box.
+    fog_objects: dict[int, str] = field(default_factory=dict)
     # The tyndall.Scene the validation parsed, where it is the one the render needs (no IES
     # file, whose path depends on the folder): the render reuses it instead of parsing again
     # (0.19 s per million triangles).
@@ -450,8 +453,14 @@ def build_scene(data: SceneData) -> BuiltScene:
     }
     scene = {"version": 1, "camera": camera, "meshes": meshes, "lights": lights, "media": media, "output": output}
     fog_materials = sorted({m.material for m in data.media if m.material})
+    fog_objects = {i: m.source for i, m in enumerate(data.media) if m.source}
     return BuiltScene(
-        scene=scene, ies_texts=ies_texts, light_names=light_names, notes=notes, fog_materials=fog_materials
+        scene=scene,
+        ies_texts=ies_texts,
+        light_names=light_names,
+        notes=notes,
+        fog_materials=fog_materials,
+        fog_objects=fog_objects,
     )
 
 
