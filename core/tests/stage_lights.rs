@@ -27,7 +27,7 @@ use std::f64::consts::PI;
 use tyndall_core::geometry::bvh::{Bvh, Triangle};
 use tyndall_core::light::PointSource;
 use tyndall_core::light::shadow::IndexedMesh;
-use tyndall_core::medium::homogeneous::Homogeneous;
+use tyndall_core::medium::homogeneous::{Homogeneous, MediumBox};
 use tyndall_core::medium::{PreparedMedium, ViewRay};
 use tyndall_core::render::stage::{MAX_LIGHT_LAYERS, PreparedPoint, Scratch, StageLights};
 use tyndall_core::scene::{IntensityDistribution, IsotropicDistribution, Orientation, PointLight, SpotLight};
@@ -238,6 +238,8 @@ struct BruteScene<'a> {
     /// Whether the medium dims the light on its way to the point (Cycles: not
     /// for a light that casts no shadows, whose shadow ray it never traces).
     light_path_dims: bool,
+    /// A haze box besides the world's haze.
+    fog_box: Option<FogBox>,
 }
 
 impl BruteScene<'_> {
@@ -253,7 +255,19 @@ impl BruteScene<'_> {
         let w = v / r;
         let mu = -d.dot(w);
         let path = if self.light_path_dims { t + r } else { t };
-        self.sigma_s * self.phase.eval(mu) * self.spot.intensity * self.spot.mask(w) / (r * r) * (-self.sigma_t * path).exp()
+        let (mut scatter, mut depth) = (self.sigma_s * self.phase.eval(mu), self.sigma_t * path);
+        if let Some(b) = &self.fog_box {
+            // Inside the box: its scattering; both paths: their length in it.
+            if b.span(o, d).is_some_and(|(s0, s1)| t >= s0 && t <= s1) {
+                scatter += b.sigma_s * b.phase.eval(mu);
+            }
+            let mut len = b.overlap(o, d, 0.0, t);
+            if self.light_path_dims {
+                len += b.overlap(x, self.spot.pos - x, 0.0, 1.0) * r;
+            }
+            depth += b.sigma_t * len;
+        }
+        scatter * self.spot.intensity * self.spot.mask(w) / (r * r) * (-depth).exp()
     }
 
     fn simpson(&self, o: DVec3, d: DVec3, a: f64, b: f64, fa: f64, fm: f64, fb: f64, whole: f64, eps: f64, depth: u32) -> f64 {
@@ -348,6 +362,14 @@ impl BruteScene<'_> {
             }
             step *= 4.0;
         }
+        // The box's faces on the view ray (its scattering steps there).
+        if let Some((s0, s1)) = self.fog_box.and_then(|b| b.span(o, d)) {
+            for t in [s0, s1] {
+                if t > 0.0 && t < t_end {
+                    cuts.push(t);
+                }
+            }
+        }
         let mut depth = 0.25;
         while depth < 100.0 {
             let t = depth / self.sigma_t;
@@ -405,6 +427,54 @@ struct Case {
     axis: DVec3,
     /// Use Nishita's spotlight (eq 7, beam spread = half the spot size) with this q.
     nishita_q: Option<f64>,
+    /// A box of haze besides the world's.
+    fog_box: Option<FogBox>,
+}
+
+/// A haze box, turned about its centre by (unit axis, angle) box → world.
+#[derive(Clone, Copy)]
+struct FogBox {
+    lo: DVec3,
+    hi: DVec3,
+    turn: Option<(DVec3, f64)>,
+    sigma_s: f64,
+    sigma_t: f64,
+    phase: Phase,
+}
+
+impl FogBox {
+    /// Where the ray `o + t·d` is inside the box, by the test's own geometry
+    /// (Rodrigues' turn, `common::box_span`).
+    fn span(&self, o: DVec3, d: DVec3) -> Option<(f64, f64)> {
+        let c = 0.5 * (self.lo + self.hi);
+        let (o, d) = match self.turn {
+            Some((axis, angle)) => (c + common::rodrigues(o - c, axis, -angle), common::rodrigues(d, axis, -angle)),
+            None => (o, d),
+        };
+        common::box_span(o, d, self.lo, self.hi)
+    }
+
+    /// Length of `[a, b]` (in units of `|d|`) inside the box.
+    fn overlap(&self, o: DVec3, d: DVec3, a: f64, b: f64) -> f64 {
+        match self.span(o, d) {
+            Some((s0, s1)) => (s1.min(b) - s0.max(a)).max(0.0),
+            None => 0.0,
+        }
+    }
+
+    fn library(&self) -> PreparedMedium<3> {
+        PreparedMedium::Homogeneous(Homogeneous {
+            name: "fog box".into(),
+            scattering: [self.sigma_s; 3],
+            extinction: [self.sigma_t; 3],
+            phase: self.phase.lib(),
+            bounds: Some(MediumBox::new(
+                self.lo,
+                self.hi,
+                self.turn.map(|(axis, angle)| glam::DQuat::from_axis_angle(axis, angle)),
+            )),
+        })
+    }
 }
 
 /// Renders `rays` through the case with the library and the brute force;
@@ -463,7 +533,10 @@ fn run_case(case: &Case, rays: &[(DVec3, DVec3)], tol: f64) -> (usize, usize, us
         }]);
         Some(Bvh::build(case.tris.iter().map(|t| Triangle::new(t[0], t[1], t[2])).collect()))
     };
-    let media = [world(case.sigma_s, case.sigma_a, case.phase)];
+    let mut media = vec![world(case.sigma_s, case.sigma_a, case.phase)];
+    if let Some(b) = &case.fog_box {
+        media.push(b.library());
+    }
     let cos_half = (0.5 * case.spot_size_deg).to_radians().cos();
     let brute = BruteScene {
         spot: RefSpot {
@@ -479,6 +552,7 @@ fn run_case(case: &Case, rays: &[(DVec3, DVec3)], tol: f64) -> (usize, usize, us
         phase: case.phase,
         tris: &case.tris,
         light_path_dims: true,
+        fog_box: case.fog_box,
     };
     let (mut honest, mut within, mut worst) = (0, 0, 0.0f64);
     for (o, d) in rays {
@@ -546,6 +620,74 @@ fn random_spots_error_estimate_is_honest_at_loose_tolerances() {
     random_spots_with_occluders(0.3);
 }
 
+/// A haze box under the rig besides the world's haze (a fog box in
+/// Blender): it does not hold the light, so its share of the light path has
+/// kinks where the segment to the light starts or stops touching it, and its
+/// scattering steps at its faces. Random spots, boxes (some turned, some
+/// outside the cone) and occluders against the brute force, whose box
+/// geometry is its own (Rodrigues' turn, slab spans), at a tight and two
+/// loose tolerances.
+#[test]
+fn random_spots_over_a_haze_box_error_estimate_is_honest() {
+    for tol in [1e-4, 0.05, 0.3] {
+        let mut rng = Rng(11);
+        let (mut total, mut honest, mut within, mut worst) = (0, 0, 0, 0.0f64);
+        for k in 0..12 {
+            let light_pos = DVec3::new(rng.range(-1.0, 1.0), rng.range(-1.0, 1.0), rng.range(3.0, 5.0));
+            let axis = DVec3::new(rng.range(-0.3, 0.3), rng.range(-0.3, 0.3), -1.0);
+            let tris = cube(
+                DVec3::new(rng.range(-0.5, 0.5), rng.range(-0.5, 0.5), rng.range(1.8, 2.4)),
+                DVec3::new(0.3, 0.4, 0.25),
+            );
+            // A box on the floor under the light; every fourth beside the
+            // cone (k % 4 == 3: far to the side), every other one turned.
+            let side = if k % 4 == 3 { 8.0 } else { 0.0 };
+            let c = DVec3::new(rng.range(-0.8, 0.8) + side, rng.range(-0.8, 0.8), rng.range(0.4, 1.0));
+            let half = DVec3::new(rng.range(0.5, 1.5), rng.range(0.5, 1.5), rng.range(0.3, 0.8));
+            let sigma_s = 10f64.powf(rng.range(-2.0, 0.5));
+            let fog_box = FogBox {
+                lo: c - half,
+                hi: c + half,
+                turn: (k % 2 == 1).then(|| (rng.unit(), rng.range(0.2, 1.2))),
+                sigma_s,
+                sigma_t: sigma_s * [1.0, 1.3][k % 2],
+                phase: [Phase::Iso, Phase::Hg(0.6), Phase::Rayleigh][k % 3],
+            };
+            let case = Case {
+                spot_size_deg: [30.0, 60.0, 90.0][k % 3],
+                blend: [0.0, 0.15, 0.5][(k / 3) % 3],
+                sigma_s: 10f64.powf(rng.range(-3.0, -1.0)),
+                sigma_a: if k % 3 == 0 { 0.02 } else { 0.0 },
+                phase: Phase::Hg(0.3),
+                tris,
+                light_pos,
+                axis,
+                nishita_q: None,
+                fog_box: Some(fog_box),
+            };
+            // Rays from eyes around the box, some through it.
+            let mut rays = random_rays(&mut rng, 24, light_pos, axis);
+            for _ in 0..8 {
+                let eye = DVec3::new(rng.range(-6.0, 6.0), rng.range(-7.0, -4.0), rng.range(0.3, 2.5));
+                let target = c + DVec3::new(rng.range(-1.0, 1.0), rng.range(-1.0, 1.0), rng.range(-0.5, 0.5));
+                rays.push((eye, (target - eye).normalize()));
+            }
+            let (n, h, w, e) = run_case(&case, &rays, tol);
+            total += n;
+            honest += h;
+            within += w;
+            worst = worst.max(e);
+        }
+        let frac = honest as f64 / total as f64;
+        println!(
+            "haze box, tolerance {tol:e}, {total} rays: within the estimate on {honest} ({:.2} %), within tolerance on {within}; worst rel {worst:.2e}",
+            100.0 * frac
+        );
+        assert!(frac >= 0.99, "error estimate honest on only {:.2} % of rays", 100.0 * frac);
+        assert!(within as f64 >= 0.99 * total as f64, "tolerance met on only {within} of {total}");
+    }
+}
+
 fn random_spots_with_occluders(tol: f64) {
     let mut rng = Rng(3);
     let phases = [
@@ -581,6 +723,7 @@ fn random_spots_with_occluders(tol: f64) {
             light_pos,
             axis,
             nishita_q: None,
+            fog_box: None,
         };
         let rays = random_rays(&mut rng, 40, light_pos, axis);
         let (n, h, w, e) = run_case(&case, &rays, tol);
@@ -618,6 +761,7 @@ fn base_case() -> Case {
         light_pos: DVec3::new(0.0, 0.0, 4.0),
         axis: DVec3::NEG_Z,
         nishita_q: None,
+        fog_box: None,
     }
 }
 
@@ -1173,6 +1317,7 @@ fn haze_spot<'a>(pos: DVec3, axis: DVec3, half_deg: f64, tris: &'a [[DVec3; 3]],
         phase: Phase::Iso,
         tris,
         light_path_dims,
+        fog_box: None,
     }
 }
 

@@ -72,6 +72,16 @@ impl MediumBox {
         Self::new(min, max, None)
     }
 
+    /// The box's centre (the same in both frames).
+    pub fn centre(&self) -> DVec3 {
+        0.5 * (self.min + self.max)
+    }
+
+    /// Radius of the ball about [`Self::centre`] that holds the box.
+    pub fn radius(&self) -> f64 {
+        0.5 * (self.max - self.min).length()
+    }
+
     /// Whether the box is turned.
     pub fn is_rotated(&self) -> bool {
         self.world_to_box.is_some()
@@ -103,6 +113,56 @@ impl MediumBox {
     pub fn contains(&self, p: DVec3) -> bool {
         let q = self.local_point(p);
         !(q.cmplt(self.min).any() || q.cmpgt(self.max).any())
+    }
+
+    /// Where, on the ray `o + t·d` (`t > 0`), the length inside the box of the
+    /// segment from `x(t)` to `light` (outside the box) has kinks, pushed to
+    /// `out`. All those segments lie in the plane through the light and the
+    /// ray, which cuts the box in a convex polygon; the length is smooth
+    /// while the segment enters and leaves through the same two sides and
+    /// kinks where it passes a corner of the polygon, a point where an edge
+    /// of the box crosses the plane. The ray meets the line from the light
+    /// through each such point at one `t`. (A segment touching an edge only
+    /// is a corner too.) A ray through the light has no plane: nothing is
+    /// pushed, and the caller's quadrature is on its own there.
+    pub fn light_path_kinks(&self, o: DVec3, d: DVec3, light: DVec3, out: &mut Vec<f64>) {
+        let (o, d, light) = (self.local_point(o), self.local_dir(d), self.local_point(light));
+        let to_light = light - o;
+        let n = d.cross(to_light);
+        // (NaN: no plane either.)
+        let has_plane = n.length() > 1e-12 * d.length() * to_light.length();
+        if !has_plane {
+            return;
+        }
+        let corner = |i: usize| {
+            DVec3::new(
+                if i & 1 == 0 { self.min.x } else { self.max.x },
+                if i & 2 == 0 { self.min.y } else { self.max.y },
+                if i & 4 == 0 { self.min.z } else { self.max.z },
+            )
+        };
+        for i in 0..8 {
+            for bit in [1, 2, 4] {
+                if i & bit != 0 {
+                    continue;
+                }
+                let (p0, p1) = (corner(i), corner(i | bit));
+                let (s0, s1) = (n.dot(p0 - light), n.dot(p1 - light));
+                if (s0 > 0.0 && s1 > 0.0) || (s0 < 0.0 && s1 < 0.0) || s0 == s1 {
+                    continue;
+                }
+                let v = p0 + (p1 - p0) * (s0 / (s0 - s1));
+                // o + t·d = light + λ·(v − light): crossed with w = v − light and dotted with n.
+                let w = v - light;
+                let den = d.cross(w).dot(n);
+                if den != 0.0 {
+                    let t = to_light.cross(w).dot(n) / den;
+                    if t.is_finite() && t > 0.0 {
+                        out.push(t);
+                    }
+                }
+            }
+        }
     }
 
     /// Parametric interval `[t0, t1]` where the world ray `o + t·d` is inside

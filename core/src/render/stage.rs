@@ -50,7 +50,15 @@
 //! are `σ_t t` and `σ_t r` — one sine/cosine pair and one exponential per
 //! point, the same function up to rounding (near the cone's surface, where the
 //! intensity is sensitive to the rounding of `cos θ`, the direction is taken
-//! from `x − x_L` as in the general case).
+//! from `x − x_L` as in the general case). A box that does not hold the light
+//! (a fog box under the rig) adds, per point, its share of the view path
+//! (`σ_t` times the overlap of `[0, t]` with the ray's interval in the box),
+//! of the light path (`σ_t` times the part of the segment `x → x_L` inside the
+//! box: one slab test) and its scattering where `t` lies in the box; the
+//! light path's share has kinks where that segment passes the box's corners
+//! (in the plane of the ray and the light), and the segments are cut there
+//! ([`crate::medium::homogeneous::MediumBox::light_path_kinks`]), in the
+//! general case too.
 //!
 //! **Left out.** A ray that crosses no light's illumination volume inside a
 //! medium evaluates no integral; a tile of rays that provably misses every
@@ -62,6 +70,7 @@ use crate::geometry::bvh::Bvh;
 use crate::light::shadow::{IndexedMesh, Projector, ShadowWedges};
 use crate::light::window::WindowSource;
 use crate::light::{PointSource, ray_cone_intervals, ray_elliptic_cone_intervals};
+use crate::medium::homogeneous::MediumBox;
 use crate::medium::{PreparedMedium, ViewRay};
 use crate::numeric::{integrate_adaptive, integrate_adaptive_nested, integrate_adaptive_nested_from_g3};
 use glam::DVec3;
@@ -277,23 +286,124 @@ struct PlainMedia<const C: usize> {
     grey: bool,
     lo: f64,
     hi: f64,
+    /// Boxes that do not hold the light, `outer_count` of them; the media they
+    /// are, by index, in `outer_mask` (left out of `extinction` and `offset`).
+    outer: [Option<OuterBox<C>>; MAX_OUTER_BOXES],
+    outer_count: usize,
+    outer_mask: u64,
 }
 
-fn plain_media<const C: usize>(media: &[PreparedMedium<C>], ray: &ViewRay, light: DVec3) -> Option<PlainMedia<C>> {
+/// At most this many boxes that do not hold the light on the plain path.
+const MAX_OUTER_BOXES: usize = 4;
+
+/// A box medium that does not hold the light (see the module documentation).
+#[derive(Clone, Copy)]
+struct OuterBox<const C: usize> {
+    bounds: MediumBox,
+    /// The view ray inside the box, `[s0, s1]` clipped to `t ≥ 0` (empty: `s1 ≤ s0`).
+    s0: f64,
+    s1: f64,
+    extinction: [f64; C],
+    scattering: [f64; C],
+    phase: crate::medium::phase::PhaseFunction,
+    /// The box lies outside the light's bounding cone: no light path (which
+    /// stays inside the cone) crosses it, and the lit segments (inside the
+    /// cone) do not enter it, so on them its only share is a constant of the
+    /// view path.
+    clear: bool,
+}
+
+/// Whether the ball `centre ± radius` lies outside the cone from `apex`
+/// about the unit `axis` with half-angle `acos(cos_reach)` (conservative:
+/// `false` when unsure).
+fn ball_outside_cone(centre: DVec3, radius: f64, apex: DVec3, axis: DVec3, cos_reach: f64) -> bool {
+    let v = centre - apex;
+    let dist = v.length();
+    // (NaN: unsure.)
+    let apart = dist > radius * (1.0 + 1e-9) + 1e-12;
+    if !apart {
+        return false;
+    }
+    // The angle from the axis to the centre against the cone's half-angle
+    // plus the ball's angular radius, with a margin for rounding.
+    let theta = (v.dot(axis) / dist).clamp(-1.0, 1.0).acos();
+    let alpha = cos_reach.clamp(-1.0, 1.0).acos();
+    let beta = (radius / dist).min(1.0).asin();
+    theta > alpha + beta + 1e-9
+}
+
+impl<const C: usize> PlainMedia<C> {
+    /// The outer boxes' scattering × phase at `t` (cosine `mu`) added to
+    /// `sp`, and their optical depth of the view path to `t` and of the light
+    /// path from `x` (to the light at `x_l`, when the medium dims it) added to
+    /// `depth`.
+    #[inline]
+    #[allow(clippy::too_many_arguments)]
+    fn add_outer(&self, t: f64, x: DVec3, x_l: DVec3, mu: f64, light_dims: bool, sp: &mut [f64; C], depth: &mut [f64; C]) {
+        for b in self.outer.iter().take(self.outer_count).flatten() {
+            let mut len = (t.min(b.s1) - b.s0).max(0.0);
+            if light_dims
+                && !b.clear
+                && let Some((a, e)) = b.bounds.ray_interval(x, x_l - x)
+            {
+                let (a, e) = (a.max(0.0), e.min(1.0));
+                if e > a {
+                    len += (e - a) * (x_l - x).length();
+                }
+            }
+            if t >= b.s0 && t <= b.s1 {
+                let ph = b.phase.eval(mu);
+                for c in 0..C {
+                    sp[c] += b.scattering[c] * ph;
+                }
+            }
+            if len > 0.0 {
+                for c in 0..C {
+                    depth[c] += b.extinction[c] * len;
+                }
+            }
+        }
+    }
+}
+
+fn plain_media<const C: usize>(media: &[PreparedMedium<C>], ray: &ViewRay, l: &PointSource<C>) -> Option<PlainMedia<C>> {
+    let light = l.position;
     let mut p = PlainMedia {
         extinction: [0.0; C],
         offset: [0.0; C],
         grey: true,
         lo: 0.0,
         hi: f64::INFINITY,
+        outer: [None; MAX_OUTER_BOXES],
+        outer_count: 0,
+        outer_mask: 0,
     };
-    for m in media {
+    if media.len() > 64 {
+        return None;
+    }
+    for (i, m) in media.iter().enumerate() {
         let PreparedMedium::Homogeneous(h) = m else {
             return None;
         };
         if let Some(b) = h.bounds {
             if !b.contains(light) {
-                return None;
+                if p.outer_count == MAX_OUTER_BOXES {
+                    return None;
+                }
+                let (s0, s1) = b.ray_interval(ray.origin, ray.dir).unwrap_or((0.0, 0.0));
+                let clear = ball_outside_cone(b.centre(), b.radius(), light, l.frame.axis, l.cos_reach);
+                p.outer[p.outer_count] = Some(OuterBox {
+                    clear,
+                    bounds: b,
+                    s0: s0.max(0.0),
+                    s1: s1.min(ray.s_max),
+                    extinction: h.extinction,
+                    scattering: h.scattering,
+                    phase: h.phase,
+                });
+                p.outer_count += 1;
+                p.outer_mask |= 1 << i;
+                continue;
             }
             let (s0, s1) = h.segment(ray)?;
             p.lo = p.lo.max(s0);
@@ -306,7 +416,7 @@ fn plain_media<const C: usize>(media: &[PreparedMedium<C>], ray: &ViewRay, light
             p.extinction[c] += h.extinction[c];
         }
     }
-    p.grey = (1..C).all(|c| p.extinction[c] == p.extinction[0] && p.offset[c] == p.offset[0]);
+    p.grey = p.outer_count == 0 && (1..C).all(|c| p.extinction[c] == p.extinction[0] && p.offset[c] == p.offset[0]);
     Some(p)
 }
 
@@ -640,6 +750,17 @@ impl<const C: usize> StageLights<C> {
         scratch.cuts.clear();
         for m in media {
             m.breakpoints(ray, &mut scratch.cuts);
+            // A box that does not hold the light: the light path's length in
+            // it kinks where that path passes the box's corners in the plane
+            // of the ray and the light (the estimate of a panel across such a
+            // kink was low: 89 % of rays honest at tolerance 1e-4).
+            if let PreparedMedium::Homogeneous(hm) = m
+                && let Some(b) = hm.bounds
+                && p.casts_shadows
+                && !b.contains(l.position)
+            {
+                b.light_path_kinks(ray.origin, ray.dir, l.position, &mut scratch.cuts);
+            }
         }
         for (i, &k) in l.kinks().as_slice().iter().enumerate() {
             // The bounding cone's own surface ends the lit segments already
@@ -707,7 +828,7 @@ impl<const C: usize> StageLights<C> {
         // ω = n̂·cos u + d·sin u, cos θ = (n̂·a)·cos u + (d·a)·sin u,
         // μ = −d·ω = −sin u, and the optical depths are σ_t·t − offset and σ_t·r:
         // one sine and cosine, one division and one exponential per point.
-        let plain = if h == h_true { plain_media(media, ray, l.position) } else { None };
+        let plain = if h == h_true { plain_media(media, ray, l) } else { None };
         let light_dims = p.casts_shadows;
         let n_hat = (o + d * tc - l.position) / h;
         let (na, da) = (n_hat.dot(l.frame.axis), d.dot(l.frame.axis));
@@ -744,13 +865,21 @@ impl<const C: usize> StageLights<C> {
             }
             let mu = -sin_u;
             let mut sp = [0.0; C];
-            for m in media {
-                if let PreparedMedium::Homogeneous(hm) = m {
+            for (i, m) in media.iter().enumerate() {
+                if let PreparedMedium::Homogeneous(hm) = m
+                    && p.outer_mask & (1 << i) == 0
+                {
                     let ph = hm.phase.eval(mu);
                     for c in 0..C {
                         sp[c] += hm.scattering[c] * ph;
                     }
                 }
+            }
+            // Boxes that do not hold the light: their scattering at x and
+            // their share of both paths' optical depth.
+            let mut outer_depth = [0.0; C];
+            if p.outer_count > 0 {
+                p.add_outer(t, o + d * t, l.position, mu, light_dims, &mut sp, &mut outer_depth);
             }
             // Without shadows Cycles traces no shadow ray, so the medium
             // does not dim the light on its way to x either.
@@ -769,7 +898,7 @@ impl<const C: usize> StageLights<C> {
                 let tr = if p.grey {
                     grey_tr
                 } else {
-                    (p.offset[c] - p.extinction[c] * path).exp()
+                    (p.offset[c] - p.extinction[c] * path - outer_depth[c]).exp()
                 };
                 val[c] = if tr == 0.0 { 0.0 } else { sp[c] * tr * l.intensity[c] * k };
             }
@@ -923,6 +1052,8 @@ impl<const C: usize> StageLights<C> {
             // estimate |G3 − G1|): at loose tolerances most need no more
             // (narrow beam, 768×432: 7.0 → 3.2 evaluations per window).
             // Otherwise K7 first.
+            // (A box that does not hold the light: the light path's kinks
+            // in it are cuts, see `light_path_kinks`.)
             let smooth = fast && l.smooth_between_kinks();
             for wdw in bounds.windows(2) {
                 if wdw[1] <= wdw[0] {
@@ -1051,5 +1182,45 @@ impl<const C: usize> StageLights<C> {
             add_integral(&mut total, out, &r);
         }
         total
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A ball said to lie outside a cone has no point inside it: points of
+    /// random balls (on their surface and inside) against random cones, by
+    /// the angle from the axis. And the test is not vacuous: it says
+    /// "outside" for many of them.
+    #[test]
+    fn a_ball_outside_the_cone_has_no_point_in_it() {
+        let seed = std::cell::Cell::new(7u64);
+        let next = || {
+            seed.set(seed.get().wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407));
+            (seed.get() >> 11) as f64 / (1u64 << 53) as f64
+        };
+        let v = || DVec3::new(next() - 0.5, next() - 0.5, next() - 0.5);
+        let mut outside = 0;
+        for _ in 0..4000 {
+            let (apex, axis, centre) = (v() * 4.0, v().normalize(), v() * 10.0);
+            let radius = 0.05 + 2.0 * next();
+            let cos_reach = 2.0 * next() - 1.0;
+            if !ball_outside_cone(centre, radius, apex, axis, cos_reach) {
+                continue;
+            }
+            outside += 1;
+            for _ in 0..200 {
+                let u = v().normalize();
+                // Half on the sphere, half inside it.
+                let p = centre + u * radius * if next() < 0.5 { 1.0 } else { next().cbrt() };
+                let w = p - apex;
+                assert!(
+                    w.dot(axis) < cos_reach * w.length(),
+                    "{p} is inside the cone (apex {apex}, axis {axis}, cos {cos_reach}) but the ball {centre} ± {radius} was said to be outside"
+                );
+            }
+        }
+        assert!(outside > 500, "{outside}");
     }
 }
