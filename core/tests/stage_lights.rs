@@ -1030,6 +1030,134 @@ fn window_light_with_occluder_matches_brute_force() {
     );
 }
 
+/// Adaptive Simpson on `[a, b]` to `eps` (absolute), from 64 panels.
+fn adaptive_simpson(f: &dyn Fn(f64) -> f64, a: f64, b: f64, rel: f64) -> f64 {
+    fn rec(f: &dyn Fn(f64) -> f64, a: f64, b: f64, fa: f64, fm: f64, fb: f64, whole: f64, eps: f64, depth: u32) -> f64 {
+        let m = 0.5 * (a + b);
+        let (lm, rm) = (0.5 * (a + m), 0.5 * (m + b));
+        let (flm, frm) = (f(lm), f(rm));
+        let left = (m - a) / 6.0 * (fa + 4.0 * flm + fm);
+        let right = (b - m) / 6.0 * (fm + 4.0 * frm + fb);
+        let diff = left + right - whole;
+        if depth == 0 || diff.abs() <= 15.0 * eps {
+            return left + right + diff / 15.0;
+        }
+        rec(f, a, m, fa, flm, fm, left, 0.5 * eps, depth - 1) + rec(f, m, b, fm, frm, fb, right, 0.5 * eps, depth - 1)
+    }
+    let n = 64;
+    let panels: Vec<(f64, f64, f64, f64, f64, f64)> = (0..n)
+        .map(|k| {
+            let (pa, pb) = (a + (b - a) * k as f64 / n as f64, a + (b - a) * (k + 1) as f64 / n as f64);
+            let (fa, fm, fb) = (f(pa), f(0.5 * (pa + pb)), f(pb));
+            (pa, pb, fa, fm, fb, (pb - pa) / 6.0 * (fa + 4.0 * fm + fb))
+        })
+        .collect();
+    let first: f64 = panels.iter().map(|p| p.5.abs()).sum();
+    let eps = rel * first / n as f64;
+    panels
+        .iter()
+        .map(|&(pa, pb, fa, fm, fb, whole)| rec(f, pa, pb, fa, fm, fb, whole, eps, 30))
+        .sum()
+}
+
+/// Parallel light through a skylight into a turned haze box besides the
+/// world's haze: the light path's length in the box kinks where the line
+/// towards the light passes the box's corners, and where its end on the
+/// window's plane crosses the box. Against a brute force with its own box
+/// geometry (Rodrigues' turn, slab spans) and adaptive Simpson to 1e-13.
+#[test]
+fn window_light_through_a_haze_box_matches_brute_force() {
+    use tyndall_core::light::window::WindowSource;
+    use tyndall_core::render::stage::PreparedWindow;
+    let to_light = DVec3::new(0.4, -0.3, 1.0).normalize();
+    let corners = [[-1.0, -1.0, 4.0], [1.0, -1.0, 4.0], [1.0, 1.0, 4.0], [-1.0, 1.0, 4.0]];
+    let irradiance = 50.0;
+    let lights = StageLights {
+        points: vec![],
+        windows: vec![PreparedWindow {
+            casts_shadows: true,
+            light: WindowSource::new("w", to_light, [irradiance; 3], &corners),
+            shadows: None,
+        }],
+        dark: vec![],
+    };
+    let (sigma_s, sigma_t, phase) = (0.05, 0.06, Phase::Hg(0.4));
+    let fog = FogBox {
+        lo: DVec3::new(-1.2, -0.8, 0.5),
+        hi: DVec3::new(1.0, 1.4, 2.6),
+        turn: Some((DVec3::new(0.3, 0.5, 0.8).normalize(), 0.5)),
+        sigma_s: 0.4,
+        sigma_t: 0.5,
+        phase: Phase::Iso,
+    };
+    let media = [world(sigma_s, sigma_t - sigma_s, phase), fog.library()];
+    let lit = |x: DVec3| -> bool {
+        let s = (4.0 - x.z) / to_light.z;
+        let p = x + to_light * s;
+        s > 0.0 && p.x.abs() <= 1.0 && p.y.abs() <= 1.0
+    };
+    let mut rng = Rng(23);
+    let (mut n, mut honest, mut lit_rays) = (0, 0, 0);
+    for _ in 0..40 {
+        let o = DVec3::new(rng.range(-4.0, 4.0), rng.range(-6.0, -3.0), rng.range(0.5, 3.5));
+        let target = DVec3::new(rng.range(-1.0, 1.0), rng.range(-1.0, 1.0), rng.range(0.5, 3.5));
+        let d = (target - o).normalize();
+        let s_max = 40.0;
+        let ray = ViewRay { origin: o, dir: d, s_max };
+        let (got, est, _) = shade(&lights, &media, None, &ray, 1e-6);
+        let mu = d.dot(to_light);
+        let integrand = |t: f64| -> f64 {
+            let x = o + d * t;
+            if !lit(x) {
+                return 0.0;
+            }
+            let s = (4.0 - x.z) / to_light.z;
+            let inside = fog.span(o, d).is_some_and(|(a, b)| t >= a && t <= b);
+            let scatter = sigma_s * phase.eval(mu) + if inside { fog.sigma_s * fog.phase.eval(mu) } else { 0.0 };
+            let depth = sigma_t * (t + s) + fog.sigma_t * (fog.overlap(o, d, 0.0, t) + fog.overlap(x, to_light, 0.0, s));
+            scatter * irradiance * (-depth).exp()
+        };
+        // The prism's and the box's faces on the ray, then adaptive Simpson between them.
+        let (mut cuts, m) = (vec![0.0, s_max], 20000);
+        let ts: Vec<f64> = (0..=m).map(|k| s_max * k as f64 / m as f64).collect();
+        let flags: Vec<bool> = ts.iter().map(|t| lit(o + d * *t)).collect();
+        for k in 0..m {
+            if flags[k] != flags[k + 1] {
+                let (mut a, mut b) = (ts[k], ts[k + 1]);
+                for _ in 0..80 {
+                    let mid = 0.5 * (a + b);
+                    if lit(o + d * mid) == flags[k] {
+                        a = mid;
+                    } else {
+                        b = mid;
+                    }
+                }
+                cuts.push(0.5 * (a + b));
+            }
+        }
+        if let Some((a, b)) = fog.span(o, d) {
+            cuts.extend([a, b].into_iter().filter(|t| *t > 0.0 && *t < s_max));
+        }
+        cuts.sort_by(f64::total_cmp);
+        let want: f64 = cuts
+            .windows(2)
+            .filter(|w| w[1] > w[0] && lit(o + d * (0.5 * (w[0] + w[1]))))
+            .map(|w| adaptive_simpson(&integrand, w[0], w[1], 1e-13))
+            .sum();
+        assert!(got.is_finite() && got >= 0.0);
+        n += 1;
+        lit_rays += (want > 0.0) as usize;
+        if (got - want).abs() <= est + 1e-9 * want + 1e-300 {
+            honest += 1;
+        } else {
+            println!("  window over a haze box: o={o} d={d} got {got:e} want {want:e} est {est:e}");
+        }
+    }
+    println!("window light through a haze box: {n} rays ({lit_rays} lit), error within the estimate on {honest}");
+    assert_eq!(honest, n);
+    assert!(lit_rays >= 20, "the rays must cross the lit prism: {lit_rays}");
+}
+
 /// A spot whose cone no view ray meets is left out and the report says so;
 /// the other spot is computed.
 #[test]

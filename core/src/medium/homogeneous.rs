@@ -134,6 +134,59 @@ impl MediumBox {
         if !has_plane {
             return;
         }
+        for (p0, p1) in self.edges() {
+            let (s0, s1) = (n.dot(p0 - light), n.dot(p1 - light));
+            if (s0 > 0.0 && s1 > 0.0) || (s0 < 0.0 && s1 < 0.0) || s0 == s1 {
+                continue;
+            }
+            let v = p0 + (p1 - p0) * (s0 / (s0 - s1));
+            // o + t·d = light + λ·(v − light): crossed with w = v − light and dotted with n.
+            let w = v - light;
+            let den = d.cross(w).dot(n);
+            if den != 0.0 {
+                let t = to_light.cross(w).dot(n) / den;
+                if t.is_finite() && t > 0.0 {
+                    out.push(t);
+                }
+            }
+        }
+    }
+
+    /// The same for parallel light (a window): where, on the ray `o + t·d`,
+    /// the length inside the box of the segment from `x(t)` along the unit
+    /// `to_light` to the plane `end(x)` (affine in `x`, the window's) kinks:
+    /// where the line through `x(t)` along `to_light` passes a corner of the
+    /// box's section by the plane of the ray and `to_light`, and where the
+    /// segment's far end crosses the box's faces. `window_end(t)` gives that
+    /// end for a ray parameter (affine in `t`).
+    pub fn parallel_path_kinks(&self, o: DVec3, d: DVec3, to_light: DVec3, window_end: impl Fn(f64) -> DVec3, out: &mut Vec<f64>) {
+        let (lo, ld, ll) = (self.local_point(o), self.local_dir(d), self.local_dir(to_light));
+        let n = ld.cross(ll);
+        let has_plane = n.length() > 1e-12 * ld.length() * ll.length();
+        if has_plane {
+            let den = n.dot(n);
+            for (p0, p1) in self.edges() {
+                let (s0, s1) = (n.dot(p0 - lo), n.dot(p1 - lo));
+                if (s0 > 0.0 && s1 > 0.0) || (s0 < 0.0 && s1 < 0.0) || s0 == s1 {
+                    continue;
+                }
+                let v = p0 + (p1 - p0) * (s0 / (s0 - s1));
+                // lo + t·ld + λ·ll = v: crossed with ll and dotted with n.
+                let t = (v - lo).cross(ll).dot(n) / den;
+                if t.is_finite() && t > 0.0 {
+                    out.push(t);
+                }
+            }
+        }
+        // The far end moves on a line: its entry into and exit from the box.
+        let (e0, e1) = (window_end(0.0), window_end(1.0));
+        if let Some((a, b)) = self.ray_interval(e0, e1 - e0) {
+            out.extend([a, b].into_iter().filter(|t| t.is_finite() && *t > 0.0));
+        }
+    }
+
+    /// The box's 12 edges in its own frame, as pairs of corners.
+    fn edges(&self) -> impl Iterator<Item = (DVec3, DVec3)> + '_ {
         let corner = |i: usize| {
             DVec3::new(
                 if i & 1 == 0 { self.min.x } else { self.max.x },
@@ -141,28 +194,12 @@ impl MediumBox {
                 if i & 4 == 0 { self.min.z } else { self.max.z },
             )
         };
-        for i in 0..8 {
-            for bit in [1, 2, 4] {
-                if i & bit != 0 {
-                    continue;
-                }
-                let (p0, p1) = (corner(i), corner(i | bit));
-                let (s0, s1) = (n.dot(p0 - light), n.dot(p1 - light));
-                if (s0 > 0.0 && s1 > 0.0) || (s0 < 0.0 && s1 < 0.0) || s0 == s1 {
-                    continue;
-                }
-                let v = p0 + (p1 - p0) * (s0 / (s0 - s1));
-                // o + t·d = light + λ·(v − light): crossed with w = v − light and dotted with n.
-                let w = v - light;
-                let den = d.cross(w).dot(n);
-                if den != 0.0 {
-                    let t = to_light.cross(w).dot(n) / den;
-                    if t.is_finite() && t > 0.0 {
-                        out.push(t);
-                    }
-                }
-            }
-        }
+        (0..8).flat_map(move |i| {
+            [1, 2, 4]
+                .into_iter()
+                .filter(move |bit| i & bit == 0)
+                .map(move |bit| (corner(i), corner(i | bit)))
+        })
     }
 
     /// Parametric interval `[t0, t1]` where the world ray `o + t·d` is inside

@@ -1150,6 +1150,18 @@ impl<const C: usize> StageLights<C> {
         scratch.cuts.clear();
         for m in media {
             m.breakpoints(ray, &mut scratch.cuts);
+            // A box medium: the light path's length in it kinks (see
+            // `MediumBox::parallel_path_kinks`); the segments are cut there.
+            if let PreparedMedium::Homogeneous(hm) = m
+                && let Some(b) = hm.bounds
+                && w.casts_shadows
+            {
+                let end = |t: f64| {
+                    let x = o + d * t;
+                    x + l.to_light * l.distance_to_window(x)
+                };
+                b.parallel_path_kinks(o, d, l.to_light, end, &mut scratch.cuts);
+            }
         }
         let mut pieces: Vec<(f64, f64)> = Vec::with_capacity(scratch.lit.len());
         for &(a, b) in &scratch.lit {
