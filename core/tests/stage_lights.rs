@@ -431,7 +431,9 @@ struct Case {
     fog_box: Option<FogBox>,
 }
 
-/// A haze box, turned about its centre by (unit axis, angle) box → world.
+/// A haze box, turned about its centre by (unit axis, angle) box → world;
+/// or, with `ellipsoid`, the smoke ellipsoid inscribed in it (semi-axes half
+/// the box's sides).
 #[derive(Clone, Copy)]
 struct FogBox {
     lo: DVec3,
@@ -440,6 +442,7 @@ struct FogBox {
     sigma_s: f64,
     sigma_t: f64,
     phase: Phase,
+    ellipsoid: bool,
 }
 
 impl FogBox {
@@ -451,7 +454,32 @@ impl FogBox {
             Some((axis, angle)) => (c + common::rodrigues(o - c, axis, -angle), common::rodrigues(d, axis, -angle)),
             None => (o, d),
         };
-        common::box_span(o, d, self.lo, self.hi)
+        if !self.ellipsoid {
+            return common::box_span(o, d, self.lo, self.hi);
+        }
+        // |q0 + t·dq|² = 1 in the unit-sphere frame (t stays the world parameter).
+        let half = 0.5 * (self.hi - self.lo);
+        let (q0, dq) = ((o - c) / half, d / half);
+        let (a, b, cc) = (dq.dot(dq), q0.dot(dq), q0.dot(q0) - 1.0);
+        if a == 0.0 {
+            return None;
+        }
+        // b² − a·c from the closest point to the centre, a·(1 − |p|²): for a
+        // far point the two terms agree to many digits, and their difference
+        // would be rounding noise that an adaptive rule chases forever.
+        let p = q0 - dq * (b / a);
+        let disc = a * (1.0 - p.dot(p));
+        if disc < 0.0 {
+            return None;
+        }
+        // Roots without cancellation (q = −(b + sign(b)·√disc)): a brute force
+        // chasing rounding noise in a chord would never stop refining.
+        let q = -(b + b.signum() * disc.sqrt());
+        if q == 0.0 {
+            return Some((0.0, 0.0));
+        }
+        let (r1, r2) = (q / a, cc / q);
+        Some((r1.min(r2), r1.max(r2)))
     }
 
     /// Length of `[a, b]` (in units of `|d|`) inside the box.
@@ -463,6 +491,19 @@ impl FogBox {
     }
 
     fn library(&self) -> PreparedMedium<3> {
+        let turn = self.turn.map(|(axis, angle)| glam::DQuat::from_axis_angle(axis, angle));
+        if self.ellipsoid {
+            return PreparedMedium::Ellipsoid(tyndall_core::medium::ellipsoid::Ellipsoid::new(
+                "smoke".into(),
+                0.5 * (self.lo + self.hi),
+                0.5 * (self.hi - self.lo),
+                turn.unwrap_or(glam::DQuat::IDENTITY),
+                [self.sigma_s; 3],
+                [self.sigma_t; 3],
+                self.phase.lib(),
+                1e-9,
+            ));
+        }
         PreparedMedium::Homogeneous(Homogeneous {
             name: "fog box".into(),
             scattering: [self.sigma_s; 3],
@@ -622,10 +663,12 @@ fn random_spots_error_estimate_is_honest_at_loose_tolerances() {
 
 /// A haze box under the rig besides the world's haze (a fog box in
 /// Blender): it does not hold the light, so its share of the light path has
-/// kinks where the segment to the light starts or stops touching it, and its
-/// scattering steps at its faces. Random spots, boxes (some turned, some
-/// outside the cone) and occluders against the brute force, whose box
-/// geometry is its own (Rodrigues' turn, slab spans), at a tight and two
+/// kinks where the segment to the light passes its corners, and its
+/// scattering steps at its faces; every third scene has the smoke ellipsoid
+/// inscribed in the box instead (square-root kinks where that segment turns
+/// tangent to it). Random spots, boxes (some turned, some outside the cone)
+/// and occluders against the brute force, whose geometry is its own
+/// (Rodrigues' turn, slab spans, the sphere's quadratic), at a tight and two
 /// loose tolerances.
 #[test]
 fn random_spots_over_a_haze_box_error_estimate_is_honest() {
@@ -639,6 +682,7 @@ fn random_spots_over_a_haze_box_error_estimate_is_honest() {
                 DVec3::new(rng.range(-0.5, 0.5), rng.range(-0.5, 0.5), rng.range(1.8, 2.4)),
                 DVec3::new(0.3, 0.4, 0.25),
             );
+
             // A box on the floor under the light; every fourth beside the
             // cone (k % 4 == 3: far to the side), every other one turned.
             let side = if k % 4 == 3 { 8.0 } else { 0.0 };
@@ -652,6 +696,7 @@ fn random_spots_over_a_haze_box_error_estimate_is_honest() {
                 sigma_s,
                 sigma_t: sigma_s * [1.0, 1.3][k % 2],
                 phase: [Phase::Iso, Phase::Hg(0.6), Phase::Rayleigh][k % 3],
+                ellipsoid: k % 3 == 2,
             };
             let case = Case {
                 spot_size_deg: [30.0, 60.0, 90.0][k % 3],
@@ -1063,8 +1108,10 @@ fn adaptive_simpson(f: &dyn Fn(f64) -> f64, a: f64, b: f64, rel: f64) -> f64 {
 /// Parallel light through a skylight into a turned haze box besides the
 /// world's haze: the light path's length in the box kinks where the line
 /// towards the light passes the box's corners, and where its end on the
-/// window's plane crosses the box. Against a brute force with its own box
-/// geometry (Rodrigues' turn, slab spans) and adaptive Simpson to 1e-13.
+/// window's plane crosses the box; then the smoke ellipsoid inscribed in the
+/// box (square-root kinks where the line turns tangent to it). Against a
+/// brute force with its own geometry (Rodrigues' turn, slab spans, the
+/// sphere's quadratic) and adaptive Simpson to 1e-13.
 #[test]
 fn window_light_through_a_haze_box_matches_brute_force() {
     use tyndall_core::light::window::WindowSource;
@@ -1082,80 +1129,86 @@ fn window_light_through_a_haze_box_matches_brute_force() {
         dark: vec![],
     };
     let (sigma_s, sigma_t, phase) = (0.05, 0.06, Phase::Hg(0.4));
-    let fog = FogBox {
-        lo: DVec3::new(-1.2, -0.8, 0.5),
-        hi: DVec3::new(1.0, 1.4, 2.6),
-        turn: Some((DVec3::new(0.3, 0.5, 0.8).normalize(), 0.5)),
-        sigma_s: 0.4,
-        sigma_t: 0.5,
-        phase: Phase::Iso,
-    };
-    let media = [world(sigma_s, sigma_t - sigma_s, phase), fog.library()];
-    let lit = |x: DVec3| -> bool {
-        let s = (4.0 - x.z) / to_light.z;
-        let p = x + to_light * s;
-        s > 0.0 && p.x.abs() <= 1.0 && p.y.abs() <= 1.0
-    };
-    let mut rng = Rng(23);
-    let (mut n, mut honest, mut lit_rays) = (0, 0, 0);
-    for _ in 0..40 {
-        let o = DVec3::new(rng.range(-4.0, 4.0), rng.range(-6.0, -3.0), rng.range(0.5, 3.5));
-        let target = DVec3::new(rng.range(-1.0, 1.0), rng.range(-1.0, 1.0), rng.range(0.5, 3.5));
-        let d = (target - o).normalize();
-        let s_max = 40.0;
-        let ray = ViewRay { origin: o, dir: d, s_max };
-        let (got, est, _) = shade(&lights, &media, None, &ray, 1e-6);
-        let mu = d.dot(to_light);
-        let integrand = |t: f64| -> f64 {
-            let x = o + d * t;
-            if !lit(x) {
-                return 0.0;
-            }
-            let s = (4.0 - x.z) / to_light.z;
-            let inside = fog.span(o, d).is_some_and(|(a, b)| t >= a && t <= b);
-            let scatter = sigma_s * phase.eval(mu) + if inside { fog.sigma_s * fog.phase.eval(mu) } else { 0.0 };
-            let depth = sigma_t * (t + s) + fog.sigma_t * (fog.overlap(o, d, 0.0, t) + fog.overlap(x, to_light, 0.0, s));
-            scatter * irradiance * (-depth).exp()
+    for ellipsoid in [false, true] {
+        let fog = FogBox {
+            lo: DVec3::new(-1.2, -0.8, 0.5),
+            hi: DVec3::new(1.0, 1.4, 2.6),
+            turn: Some((DVec3::new(0.3, 0.5, 0.8).normalize(), 0.5)),
+            sigma_s: 0.4,
+            sigma_t: 0.5,
+            phase: Phase::Iso,
+            ellipsoid,
         };
-        // The prism's and the box's faces on the ray, then adaptive Simpson between them.
-        let (mut cuts, m) = (vec![0.0, s_max], 20000);
-        let ts: Vec<f64> = (0..=m).map(|k| s_max * k as f64 / m as f64).collect();
-        let flags: Vec<bool> = ts.iter().map(|t| lit(o + d * *t)).collect();
-        for k in 0..m {
-            if flags[k] != flags[k + 1] {
-                let (mut a, mut b) = (ts[k], ts[k + 1]);
-                for _ in 0..80 {
-                    let mid = 0.5 * (a + b);
-                    if lit(o + d * mid) == flags[k] {
-                        a = mid;
-                    } else {
-                        b = mid;
-                    }
+        let media = [world(sigma_s, sigma_t - sigma_s, phase), fog.library()];
+        let lit = |x: DVec3| -> bool {
+            let s = (4.0 - x.z) / to_light.z;
+            let p = x + to_light * s;
+            s > 0.0 && p.x.abs() <= 1.0 && p.y.abs() <= 1.0
+        };
+        let mut rng = Rng(23);
+        let (mut n, mut honest, mut lit_rays) = (0, 0, 0);
+        for _ in 0..40 {
+            let o = DVec3::new(rng.range(-4.0, 4.0), rng.range(-6.0, -3.0), rng.range(0.5, 3.5));
+            let target = DVec3::new(rng.range(-1.0, 1.0), rng.range(-1.0, 1.0), rng.range(0.5, 3.5));
+            let d = (target - o).normalize();
+            let s_max = 40.0;
+            let ray = ViewRay { origin: o, dir: d, s_max };
+            let (got, est, _) = shade(&lights, &media, None, &ray, 1e-6);
+            let mu = d.dot(to_light);
+            let integrand = |t: f64| -> f64 {
+                let x = o + d * t;
+                if !lit(x) {
+                    return 0.0;
                 }
-                cuts.push(0.5 * (a + b));
+                let s = (4.0 - x.z) / to_light.z;
+                let inside = fog.span(o, d).is_some_and(|(a, b)| t >= a && t <= b);
+                let scatter = sigma_s * phase.eval(mu) + if inside { fog.sigma_s * fog.phase.eval(mu) } else { 0.0 };
+                let depth = sigma_t * (t + s) + fog.sigma_t * (fog.overlap(o, d, 0.0, t) + fog.overlap(x, to_light, 0.0, s));
+                scatter * irradiance * (-depth).exp()
+            };
+            // The prism's and the box's faces on the ray, then adaptive Simpson between them.
+            let (mut cuts, m) = (vec![0.0, s_max], 20000);
+            let ts: Vec<f64> = (0..=m).map(|k| s_max * k as f64 / m as f64).collect();
+            let flags: Vec<bool> = ts.iter().map(|t| lit(o + d * *t)).collect();
+            for k in 0..m {
+                if flags[k] != flags[k + 1] {
+                    let (mut a, mut b) = (ts[k], ts[k + 1]);
+                    for _ in 0..80 {
+                        let mid = 0.5 * (a + b);
+                        if lit(o + d * mid) == flags[k] {
+                            a = mid;
+                        } else {
+                            b = mid;
+                        }
+                    }
+                    cuts.push(0.5 * (a + b));
+                }
+            }
+            if let Some((a, b)) = fog.span(o, d) {
+                cuts.extend([a, b].into_iter().filter(|t| *t > 0.0 && *t < s_max));
+            }
+            cuts.sort_by(f64::total_cmp);
+            let want: f64 = cuts
+                .windows(2)
+                .filter(|w| w[1] > w[0] && lit(o + d * (0.5 * (w[0] + w[1]))))
+                .map(|w| adaptive_simpson(&integrand, w[0], w[1], 1e-13))
+                .sum();
+            assert!(got.is_finite() && got >= 0.0);
+            n += 1;
+            lit_rays += (want > 0.0) as usize;
+            if (got - want).abs() <= est + 1e-9 * want + 1e-300 {
+                honest += 1;
+            } else {
+                println!("  window over a haze box: o={o} d={d} got {got:e} want {want:e} est {est:e}");
             }
         }
-        if let Some((a, b)) = fog.span(o, d) {
-            cuts.extend([a, b].into_iter().filter(|t| *t > 0.0 && *t < s_max));
-        }
-        cuts.sort_by(f64::total_cmp);
-        let want: f64 = cuts
-            .windows(2)
-            .filter(|w| w[1] > w[0] && lit(o + d * (0.5 * (w[0] + w[1]))))
-            .map(|w| adaptive_simpson(&integrand, w[0], w[1], 1e-13))
-            .sum();
-        assert!(got.is_finite() && got >= 0.0);
-        n += 1;
-        lit_rays += (want > 0.0) as usize;
-        if (got - want).abs() <= est + 1e-9 * want + 1e-300 {
-            honest += 1;
-        } else {
-            println!("  window over a haze box: o={o} d={d} got {got:e} want {want:e} est {est:e}");
-        }
+        println!(
+            "window light through a haze {}: {n} rays ({lit_rays} lit), error within the estimate on {honest}",
+            if ellipsoid { "ellipsoid" } else { "box" }
+        );
+        assert_eq!(honest, n);
+        assert!(lit_rays >= 20, "the rays must cross the lit prism: {lit_rays}");
     }
-    println!("window light through a haze box: {n} rays ({lit_rays} lit), error within the estimate on {honest}");
-    assert_eq!(honest, n);
-    assert!(lit_rays >= 20, "the rays must cross the lit prism: {lit_rays}");
 }
 
 /// A spot whose cone no view ray meets is left out and the report says so;

@@ -90,6 +90,71 @@ impl<const C: usize> Ellipsoid<C> {
         (self.world_to_unit * (p - self.center)).length_squared() <= 1.0
     }
 
+    /// Where, on the ray `o + t·d` (`t > 0`), the chord of the ellipsoid cut
+    /// by the line from `x(t)` towards the light is tangent to it: the light
+    /// path's length inside has a square-root kink there. `light` is a point
+    /// light's position, or with `parallel` the unit direction towards a
+    /// parallel light. In the unit-sphere frame (an affine map: lines, planes
+    /// and tangency are kept, and `t` is the same) the plane of the ray and
+    /// the light cuts the sphere in a circle; the ray meets the circle's two
+    /// tangents from the light (or along its direction) at one `t` each.
+    /// Nothing is pushed when the plane misses the sphere or is undefined
+    /// (a ray through the light or along its direction), or a point light
+    /// is inside the circle (then no line through it is tangent).
+    pub fn light_path_kinks(&self, o: DVec3, d: DVec3, light: DVec3, parallel: bool, out: &mut Vec<f64>) {
+        let m = self.world_to_unit;
+        let (oq, dq) = (m * (o - self.center), m * d);
+        // The light's direction from the ray's origin (point) or its direction (parallel).
+        let (lq, towards) = if parallel {
+            (DVec3::ZERO, m * light)
+        } else {
+            let lq = m * (light - self.center);
+            (lq, lq - oq)
+        };
+        let n = dq.cross(towards);
+        let n_len = n.length();
+        let has_plane = n_len > 1e-12 * dq.length() * towards.length();
+        if !has_plane {
+            return;
+        }
+        let nh = n / n_len;
+        // The circle: centre p0 (the sphere's centre projected on the plane), radius ρ.
+        let p0 = nh * nh.dot(oq);
+        let rho2 = 1.0 - p0.length_squared();
+        if rho2 <= 0.0 {
+            return;
+        }
+        let rho = rho2.sqrt();
+        // Tangent points, and each tangent's direction.
+        let tangents: [(DVec3, DVec3); 2] = if parallel {
+            let w = towards.normalize();
+            let side = nh.cross(w);
+            [(p0 + side * rho, w), (p0 - side * rho, w)]
+        } else {
+            let to_l = lq - p0;
+            let dist = to_l.length();
+            if dist <= rho {
+                return;
+            }
+            let u = to_l / dist;
+            let v = nh.cross(u);
+            let (cos_phi, sin_phi) = (rho / dist, (1.0 - (rho / dist).powi(2)).max(0.0).sqrt());
+            let t1 = p0 + (u * cos_phi + v * sin_phi) * rho;
+            let t2 = p0 + (u * cos_phi - v * sin_phi) * rho;
+            [(t1, t1 - lq), (t2, t2 - lq)]
+        };
+        for (point, w) in tangents {
+            // oq + t·dq = point + λ·w: crossed with w and dotted with n.
+            let den = dq.cross(w).dot(n);
+            if den != 0.0 {
+                let t = (point - oq).cross(w).dot(n) / den;
+                if t.is_finite() && t > 0.0 {
+                    out.push(t);
+                }
+            }
+        }
+    }
+
     /// Parameters `t₀ ≤ t₁` where the line `o + t·d` is inside, if it meets the ellipsoid.
     pub fn chord(&self, o: DVec3, d: DVec3) -> Option<(f64, f64)> {
         let oq = self.world_to_unit * (o - self.center);

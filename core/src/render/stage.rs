@@ -761,6 +761,13 @@ impl<const C: usize> StageLights<C> {
             {
                 b.light_path_kinks(ray.origin, ray.dir, l.position, &mut scratch.cuts);
             }
+            // A smoke ellipsoid: where the light path turns tangent to it.
+            if let PreparedMedium::Ellipsoid(e) = m
+                && p.casts_shadows
+                && !e.contains(l.position)
+            {
+                e.light_path_kinks(ray.origin, ray.dir, l.position, false, &mut scratch.cuts);
+            }
         }
         for (i, &k) in l.kinks().as_slice().iter().enumerate() {
             // The bounding cone's own surface ends the lit segments already
@@ -1161,6 +1168,11 @@ impl<const C: usize> StageLights<C> {
                     x + l.to_light * l.distance_to_window(x)
                 };
                 b.parallel_path_kinks(o, d, l.to_light, end, &mut scratch.cuts);
+            }
+            if let PreparedMedium::Ellipsoid(e) = m
+                && w.casts_shadows
+            {
+                e.light_path_kinks(o, d, l.to_light, true, &mut scratch.cuts);
             }
         }
         let mut pieces: Vec<(f64, f64)> = Vec::with_capacity(scratch.lit.len());
