@@ -399,21 +399,7 @@ fn cube(c: DVec3, h: DVec3) -> Vec<[DVec3; 3]> {
             if i & 4 == 0 { -h.z } else { h.z },
         )
     };
-    let idx = [
-        [0, 2, 1],
-        [1, 2, 3],
-        [4, 5, 6],
-        [5, 7, 6],
-        [0, 1, 4],
-        [1, 5, 4],
-        [2, 6, 3],
-        [3, 6, 7],
-        [0, 4, 2],
-        [2, 4, 6],
-        [1, 3, 5],
-        [3, 7, 5],
-    ];
-    idx.iter().map(|t| [p(t[0]), p(t[1]), p(t[2])]).collect()
+    common::CUBE_TRIANGLES.iter().map(|t| [p(t[0]), p(t[1]), p(t[2])]).collect()
 }
 
 struct Case {
@@ -632,6 +618,40 @@ fn run_case(case: &Case, rays: &[(DVec3, DVec3)], tol: f64) -> (usize, usize, us
     (rays.len(), honest, within, worst)
 }
 
+/// [`run_case`]'s counts summed over scenes, and the ≥ 99 % checks.
+#[derive(Default)]
+struct Tally {
+    total: usize,
+    honest: usize,
+    within: usize,
+    worst: f64,
+}
+
+impl Tally {
+    fn add(&mut self, (n, h, w, e): (usize, usize, usize, f64)) {
+        self.total += n;
+        self.honest += h;
+        self.within += w;
+        self.worst = self.worst.max(e);
+    }
+
+    fn check(&self, what: &str) {
+        let Tally {
+            total,
+            honest,
+            within,
+            worst,
+        } = *self;
+        let frac = honest as f64 / total as f64;
+        println!(
+            "{what}, {total} rays: error within the estimate on {honest} ({:.2} %), within tolerance on {within}; worst rel {worst:.2e}",
+            100.0 * frac
+        );
+        assert!(frac >= 0.99, "error estimate honest on only {:.2} % of rays", 100.0 * frac);
+        assert!(within as f64 >= 0.99 * total as f64, "tolerance met on only {within} of {total}");
+    }
+}
+
 fn random_rays(rng: &mut Rng, n: usize, light: DVec3, axis: DVec3) -> Vec<(DVec3, DVec3)> {
     (0..n)
         .map(|k| {
@@ -674,7 +694,7 @@ fn random_spots_error_estimate_is_honest_at_loose_tolerances() {
 fn random_spots_over_a_haze_box_error_estimate_is_honest() {
     for tol in [1e-4, 0.05, 0.3] {
         let mut rng = Rng(11);
-        let (mut total, mut honest, mut within, mut worst) = (0, 0, 0, 0.0f64);
+        let mut tally = Tally::default();
         for k in 0..12 {
             let light_pos = DVec3::new(rng.range(-1.0, 1.0), rng.range(-1.0, 1.0), rng.range(3.0, 5.0));
             let axis = DVec3::new(rng.range(-0.3, 0.3), rng.range(-0.3, 0.3), -1.0);
@@ -717,19 +737,9 @@ fn random_spots_over_a_haze_box_error_estimate_is_honest() {
                 let target = c + DVec3::new(rng.range(-1.0, 1.0), rng.range(-1.0, 1.0), rng.range(-0.5, 0.5));
                 rays.push((eye, (target - eye).normalize()));
             }
-            let (n, h, w, e) = run_case(&case, &rays, tol);
-            total += n;
-            honest += h;
-            within += w;
-            worst = worst.max(e);
+            tally.add(run_case(&case, &rays, tol));
         }
-        let frac = honest as f64 / total as f64;
-        println!(
-            "haze box, tolerance {tol:e}, {total} rays: within the estimate on {honest} ({:.2} %), within tolerance on {within}; worst rel {worst:.2e}",
-            100.0 * frac
-        );
-        assert!(frac >= 0.99, "error estimate honest on only {:.2} % of rays", 100.0 * frac);
-        assert!(within as f64 >= 0.99 * total as f64, "tolerance met on only {within} of {total}");
+        tally.check(&format!("haze box, tolerance {tol:e}"));
     }
 }
 
@@ -743,7 +753,7 @@ fn random_spots_with_occluders(tol: f64) {
         Phase::Murky,
         Phase::Hazy,
     ];
-    let (mut total, mut honest, mut within, mut worst) = (0, 0, 0, 0.0f64);
+    let mut tally = Tally::default();
     for k in 0..24 {
         let light_pos = DVec3::new(rng.range(-1.0, 1.0), rng.range(-1.0, 1.0), rng.range(3.0, 5.0));
         let axis = DVec3::new(rng.range(-0.3, 0.3), rng.range(-0.3, 0.3), -1.0);
@@ -771,19 +781,9 @@ fn random_spots_with_occluders(tol: f64) {
             fog_box: None,
         };
         let rays = random_rays(&mut rng, 40, light_pos, axis);
-        let (n, h, w, e) = run_case(&case, &rays, tol);
-        total += n;
-        honest += h;
-        within += w;
-        worst = worst.max(e);
+        tally.add(run_case(&case, &rays, tol));
     }
-    let frac = honest as f64 / total as f64;
-    println!(
-        "tolerance {tol:e}, {total} rays: error within the estimate on {honest} ({:.2} %), within tolerance on {within}; worst rel {worst:.2e}",
-        100.0 * frac
-    );
-    assert!(frac >= 0.99, "error estimate honest on only {:.2} % of rays", 100.0 * frac);
-    assert!(within as f64 >= 0.99 * total as f64, "tolerance met on only {within} of {total}");
+    tally.check(&format!("tolerance {tol:e}"));
 }
 
 // ------------------------------------------------------------- extreme inputs

@@ -6,6 +6,10 @@
 //! axis-aligned one seen from a turned frame. (The box's closed forms
 //! against independent quadrature: `closed_form_vs_quadrature.rs`.)
 
+#![allow(clippy::needless_range_loop)] // (in `common`)
+
+mod common;
+
 use glam::{DQuat, DVec3};
 use serde_json::{Value, json};
 use tyndall_core::{Scene, render};
@@ -39,20 +43,7 @@ fn scene(turn: Option<(DQuat, DVec3)>) -> Value {
             ])
         })
         .collect();
-    let cube_tris = [
-        [0, 2, 1],
-        [1, 2, 3],
-        [4, 5, 6],
-        [5, 7, 6],
-        [0, 1, 4],
-        [1, 5, 4],
-        [2, 6, 3],
-        [3, 6, 7],
-        [0, 4, 2],
-        [2, 4, 6],
-        [1, 3, 5],
-        [3, 7, 5],
-    ];
+    let cube_tris = common::CUBE_TRIANGLES;
     let (box_min, box_max) = ([-2.5, -1.8, 0.0], [2.5, 1.8, 3.6]);
     let mut bounds = json!({"min": box_min, "max": box_max});
     if let Some((q, _)) = turn {
