@@ -1027,24 +1027,8 @@ fn window_light_with_occluder_matches_brute_force() {
         let ray = ViewRay { origin: o, dir: d, s_max };
         let (got, est, _) = shade(&lights, &media, Some(&bvh), &ray, 1e-6);
         // Brute force: boundaries by dense sampling and bisection, Gauss-Legendre per lit piece.
-        let m = 20000;
-        let ts: Vec<f64> = (0..=m).map(|k| s_max * k as f64 / m as f64).collect();
-        let flags: Vec<bool> = ts.iter().map(|t| lit(o + d * *t)).collect();
         let mut cuts = vec![0.0];
-        for k in 0..m {
-            if flags[k] != flags[k + 1] {
-                let (mut a, mut b) = (ts[k], ts[k + 1]);
-                for _ in 0..80 {
-                    let mid = 0.5 * (a + b);
-                    if lit(o + d * mid) == flags[k] {
-                        a = mid;
-                    } else {
-                        b = mid;
-                    }
-                }
-                cuts.push(0.5 * (a + b));
-            }
-        }
+        cuts.extend(lit_boundaries(&lit, o, d, s_max));
         cuts.push(s_max);
         shadowed_pieces += cuts.len().saturating_sub(4);
         let mut want = 0.0;
@@ -1073,6 +1057,30 @@ fn window_light_with_occluder_matches_brute_force() {
         lit_rays >= 30 && shadowed_pieces > 0,
         "the rays must exercise the prism and the shadow"
     );
+}
+
+/// Where `lit` changes along `o + t·d` on `[0, s_max]`: 20 000 samples, then
+/// bisection of each change to the last bit.
+fn lit_boundaries(lit: &dyn Fn(DVec3) -> bool, o: DVec3, d: DVec3, s_max: f64) -> Vec<f64> {
+    let m = 20000;
+    let ts: Vec<f64> = (0..=m).map(|k| s_max * k as f64 / m as f64).collect();
+    let flags: Vec<bool> = ts.iter().map(|t| lit(o + d * *t)).collect();
+    let mut out = Vec::new();
+    for k in 0..m {
+        if flags[k] != flags[k + 1] {
+            let (mut a, mut b) = (ts[k], ts[k + 1]);
+            for _ in 0..80 {
+                let mid = 0.5 * (a + b);
+                if lit(o + d * mid) == flags[k] {
+                    a = mid;
+                } else {
+                    b = mid;
+                }
+            }
+            out.push(0.5 * (a + b));
+        }
+    }
+    out
 }
 
 /// Adaptive Simpson on `[a, b]` to `eps` (absolute), from 64 panels.
@@ -1167,23 +1175,8 @@ fn window_light_through_a_haze_box_matches_brute_force() {
                 scatter * irradiance * (-depth).exp()
             };
             // The prism's and the box's faces on the ray, then adaptive Simpson between them.
-            let (mut cuts, m) = (vec![0.0, s_max], 20000);
-            let ts: Vec<f64> = (0..=m).map(|k| s_max * k as f64 / m as f64).collect();
-            let flags: Vec<bool> = ts.iter().map(|t| lit(o + d * *t)).collect();
-            for k in 0..m {
-                if flags[k] != flags[k + 1] {
-                    let (mut a, mut b) = (ts[k], ts[k + 1]);
-                    for _ in 0..80 {
-                        let mid = 0.5 * (a + b);
-                        if lit(o + d * mid) == flags[k] {
-                            a = mid;
-                        } else {
-                            b = mid;
-                        }
-                    }
-                    cuts.push(0.5 * (a + b));
-                }
-            }
+            let mut cuts = vec![0.0, s_max];
+            cuts.extend(lit_boundaries(&lit, o, d, s_max));
             if let Some((a, b)) = fog.span(o, d) {
                 cuts.extend([a, b].into_iter().filter(|t| *t > 0.0 && *t < s_max));
             }
