@@ -159,7 +159,7 @@ impl MediumBox {
     /// box's section by the plane of the ray and `to_light`, and where the
     /// segment's far end crosses the box's faces. `window_end(t)` gives that
     /// end for a ray parameter (affine in `t`).
-    pub fn parallel_path_kinks(&self, o: DVec3, d: DVec3, to_light: DVec3, window_end: impl Fn(f64) -> DVec3, out: &mut Vec<f64>) {
+    pub fn parallel_path_kinks(&self, o: DVec3, d: DVec3, to_light: DVec3, window_end: &dyn Fn(f64) -> DVec3, out: &mut Vec<f64>) {
         let (lo, ld, ll) = (self.local_point(o), self.local_dir(d), self.local_dir(to_light));
         let n = ld.cross(ll);
         let has_plane = n.length() > 1e-12 * ld.length() * ll.length();

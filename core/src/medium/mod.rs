@@ -110,6 +110,21 @@ impl<const C: usize> RayResult<C> {
     }
 }
 
+/// Where a light path goes from a point `x(t)` of a view ray, for
+/// [`PreparedMedium::light_path_kinks`].
+pub enum LightPath<'a> {
+    /// To a point light at this position.
+    Point(DVec3),
+    /// Along the unit `to_light` to a window's plane; `end(t)` is the path's
+    /// end there for the view ray's `t` (affine in `t`).
+    Parallel {
+        /// Unit direction towards the light.
+        to_light: DVec3,
+        /// The path's end on the window's plane.
+        end: &'a dyn Fn(f64) -> DVec3,
+    },
+}
+
 /// A medium with its coefficients resolved to `C` channels.
 #[derive(Debug, Clone)]
 pub enum PreparedMedium<const C: usize> {
@@ -227,6 +242,36 @@ impl<const C: usize> PreparedMedium<C> {
                     }
                 }
             }
+        }
+    }
+
+    /// Appends the parameters where the optical depth of the light path from
+    /// `x(t)` on `ray` kinks as `t` moves (see [`LightPath`]): a box that does
+    /// not hold a point light where the path passes its corners, an
+    /// ellipsoid where the path turns tangent to it; the other media have
+    /// none in their interior (fog layers are bounded by planes that the
+    /// view ray's own breakpoints cover).
+    pub fn light_path_kinks(&self, ray: &ViewRay, light: &LightPath<'_>, out: &mut Vec<f64>) {
+        match (self, light) {
+            (PreparedMedium::Homogeneous(m), LightPath::Point(l)) => {
+                if let Some(b) = m.bounds
+                    && !b.contains(*l)
+                {
+                    b.light_path_kinks(ray.origin, ray.dir, *l, out);
+                }
+            }
+            (PreparedMedium::Homogeneous(m), LightPath::Parallel { to_light, end }) => {
+                if let Some(b) = m.bounds {
+                    b.parallel_path_kinks(ray.origin, ray.dir, *to_light, end, out);
+                }
+            }
+            (PreparedMedium::Ellipsoid(e), LightPath::Point(l)) if !e.contains(*l) => {
+                e.light_path_kinks(ray.origin, ray.dir, *l, false, out);
+            }
+            (PreparedMedium::Ellipsoid(e), LightPath::Parallel { to_light, .. }) => {
+                e.light_path_kinks(ray.origin, ray.dir, *to_light, true, out);
+            }
+            _ => {}
         }
     }
 
