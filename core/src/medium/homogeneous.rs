@@ -93,7 +93,7 @@ impl MediumBox {
         match self.world_to_box {
             None => p,
             Some(m) => {
-                let c = 0.5 * (self.min + self.max);
+                let c = self.centre();
                 c + m * (p - c)
             }
         }
@@ -134,12 +134,7 @@ impl MediumBox {
         if !has_plane {
             return;
         }
-        for (p0, p1) in self.edges() {
-            let (s0, s1) = (n.dot(p0 - light), n.dot(p1 - light));
-            if (s0 > 0.0 && s1 > 0.0) || (s0 < 0.0 && s1 < 0.0) || s0 == s1 {
-                continue;
-            }
-            let v = p0 + (p1 - p0) * (s0 / (s0 - s1));
+        for v in self.section_corners(n, light) {
             // o + t·d = light + λ·(v − light): crossed with w = v − light and dotted with n.
             let w = v - light;
             let den = d.cross(w).dot(n);
@@ -165,12 +160,7 @@ impl MediumBox {
         let has_plane = n.length() > 1e-12 * ld.length() * ll.length();
         if has_plane {
             let den = n.dot(n);
-            for (p0, p1) in self.edges() {
-                let (s0, s1) = (n.dot(p0 - lo), n.dot(p1 - lo));
-                if (s0 > 0.0 && s1 > 0.0) || (s0 < 0.0 && s1 < 0.0) || s0 == s1 {
-                    continue;
-                }
-                let v = p0 + (p1 - p0) * (s0 / (s0 - s1));
+            for v in self.section_corners(n, lo) {
                 // lo + t·ld + λ·ll = v: crossed with ll and dotted with n.
                 let t = (v - lo).cross(ll).dot(n) / den;
                 if t.is_finite() && t > 0.0 {
@@ -185,8 +175,9 @@ impl MediumBox {
         }
     }
 
-    /// The box's 12 edges in its own frame, as pairs of corners.
-    fn edges(&self) -> impl Iterator<Item = (DVec3, DVec3)> + '_ {
+    /// The corners of the box's section by the plane through `on` with
+    /// normal `n` (box frame): where its 12 edges cross the plane.
+    fn section_corners(&self, n: DVec3, on: DVec3) -> impl Iterator<Item = DVec3> + '_ {
         let corner = |i: usize| {
             DVec3::new(
                 if i & 1 == 0 { self.min.x } else { self.max.x },
@@ -194,12 +185,18 @@ impl MediumBox {
                 if i & 4 == 0 { self.min.z } else { self.max.z },
             )
         };
-        (0..8).flat_map(move |i| {
-            [1, 2, 4]
-                .into_iter()
-                .filter(move |bit| i & bit == 0)
-                .map(move |bit| (corner(i), corner(i | bit)))
-        })
+        (0..8)
+            .flat_map(move |i| {
+                [1, 2, 4]
+                    .into_iter()
+                    .filter(move |bit| i & bit == 0)
+                    .map(move |bit| (corner(i), corner(i | bit)))
+            })
+            .filter_map(move |(p0, p1)| {
+                let (s0, s1) = (n.dot(p0 - on), n.dot(p1 - on));
+                let apart = (s0 > 0.0 && s1 > 0.0) || (s0 < 0.0 && s1 < 0.0) || s0 == s1;
+                (!apart).then(|| p0 + (p1 - p0) * (s0 / (s0 - s1)))
+            })
     }
 
     /// Parametric interval `[t0, t1]` where the world ray `o + t·d` is inside
