@@ -361,21 +361,7 @@ impl BruteScene<'_> {
         let lit = |x: DVec3| self.lit(x);
         let tests: Vec<&dyn Fn(DVec3) -> bool> = if self.fog_box.is_some() { vec![&lit, &shaded] } else { vec![&lit] };
         for test in tests {
-            let flags: Vec<bool> = ts.iter().map(|t| test(o + d * *t)).collect();
-            for k in 0..n {
-                if flags[k] != flags[k + 1] {
-                    let (mut a, mut b) = (ts[k], ts[k + 1]);
-                    for _ in 0..80 {
-                        let m = 0.5 * (a + b);
-                        if test(o + d * m) == flags[k] {
-                            a = m;
-                        } else {
-                            b = m;
-                        }
-                    }
-                    cuts.push(0.5 * (a + b));
-                }
-            }
+            cuts.extend(changes_along(test, o, d, &ts));
         }
         // A graded mesh towards the closest approach to the light (the 1/r²
         // peak, as narrow as h) and towards the start for thick media.
@@ -1167,14 +1153,20 @@ fn window_light_with_occluder_matches_brute_force() {
 fn lit_boundaries(lit: &dyn Fn(DVec3) -> bool, o: DVec3, d: DVec3, s_max: f64) -> Vec<f64> {
     let m = 20000;
     let ts: Vec<f64> = (0..=m).map(|k| s_max * k as f64 / m as f64).collect();
-    let flags: Vec<bool> = ts.iter().map(|t| lit(o + d * *t)).collect();
+    changes_along(lit, o, d, &ts)
+}
+
+/// Where `test` changes along `o + t·d` between consecutive samples `ts`,
+/// each change bisected to the last bit.
+fn changes_along(test: &dyn Fn(DVec3) -> bool, o: DVec3, d: DVec3, ts: &[f64]) -> Vec<f64> {
+    let flags: Vec<bool> = ts.iter().map(|t| test(o + d * *t)).collect();
     let mut out = Vec::new();
-    for k in 0..m {
+    for k in 0..ts.len().saturating_sub(1) {
         if flags[k] != flags[k + 1] {
             let (mut a, mut b) = (ts[k], ts[k + 1]);
             for _ in 0..80 {
                 let mid = 0.5 * (a + b);
-                if lit(o + d * mid) == flags[k] {
+                if test(o + d * mid) == flags[k] {
                     a = mid;
                 } else {
                     b = mid;
