@@ -433,6 +433,19 @@ fn bounded_on_light_path<const C: usize>(m: &PreparedMedium<C>) -> bool {
     matches!(m, PreparedMedium::Homogeneous(h) if h.bounds.is_some()) || matches!(m, PreparedMedium::Ellipsoid(_))
 }
 
+/// The optical depth of the segment `a → b` in the media of
+/// [`bounded_on_light_path`], the largest channel.
+fn bounded_depth_between<const C: usize>(media: &[PreparedMedium<C>], a: DVec3, b: DVec3) -> f64 {
+    let mut tau = [0.0; C];
+    for m in media.iter().filter(|m| bounded_on_light_path(m)) {
+        let v = m.optical_depth_between(a, b);
+        for c in 0..C {
+            tau[c] += v[c];
+        }
+    }
+    tau.iter().fold(0.0f64, |x, y| x.max(*y))
+}
+
 /// Cuts where `depth(t)` (an optical depth along the ray, the largest
 /// channel) rises steeply from one end of a window: in each window of
 /// `[a, b]` between the sorted `ends` (`a`, the cuts inside, `b`) whose ends
@@ -1054,17 +1067,7 @@ impl<const C: usize> StageLights<C> {
             // Dense bounded media on the light path (a fog box's or a smoke
             // ellipsoid's shadow): levels of the light path's depth in them.
             if p.casts_shadows && media.iter().any(bounded_on_light_path) {
-                let light_depth = |t: f64| -> f64 {
-                    let x = o + d * t;
-                    let mut tau = [0.0; C];
-                    for m in media.iter().filter(|m| bounded_on_light_path(m)) {
-                        let v = m.optical_depth_between(x, l.position);
-                        for c in 0..C {
-                            tau[c] += v[c];
-                        }
-                    }
-                    tau.iter().fold(0.0f64, |x, y| x.max(*y))
-                };
+                let light_depth = |t: f64| bounded_depth_between(media, o + d * t, l.position);
                 scratch.ends.clear();
                 scratch.ends.push(a);
                 scratch.ends.extend(scratch.cuts.iter().copied().filter(|c| *c > a && *c < b));
@@ -1252,17 +1255,9 @@ impl<const C: usize> StageLights<C> {
                 .fold(0.0f64, |x, y| x.max(*y))
         };
         let bounded = w.casts_shadows && media.iter().any(bounded_on_light_path);
-        let light_depth = |t: f64| -> f64 {
+        let light_depth = |t: f64| {
             let x = o + d * t;
-            let far = x + l.to_light * l.distance_to_window(x);
-            let mut tau = [0.0; C];
-            for m in media.iter().filter(|m| bounded_on_light_path(m)) {
-                let v = m.optical_depth_between(x, far);
-                for c in 0..C {
-                    tau[c] += v[c];
-                }
-            }
-            tau.iter().fold(0.0f64, |x, y| x.max(*y))
+            bounded_depth_between(media, x, x + l.to_light * l.distance_to_window(x))
         };
         let mut pieces: Vec<(f64, f64)> = Vec::with_capacity(scratch.lit.len());
         for &(a, b) in &scratch.lit {
