@@ -423,7 +423,6 @@ fn plain_media<const C: usize>(media: &[PreparedMedium<C>], ray: &ViewRay, l: &P
     Some(p)
 }
 
-#[inline]
 /// Whether a medium's optical depth along a light path can change by many
 /// units within a short stretch of a view ray: a box that bounds a medium
 /// (its shadow), a smoke ellipsoid. The world's haze and height fog change
@@ -497,6 +496,7 @@ fn depth_level_cuts(ends: &[f64], depth: &dyn Fn(f64) -> f64, out: &mut Vec<f64>
     }
 }
 
+#[inline]
 fn total_depth<const C: usize>(media: &[PreparedMedium<C>], f: impl Fn(&PreparedMedium<C>) -> [f64; C]) -> [f64; C] {
     let mut t = [0.0; C];
     for m in media {
