@@ -24,7 +24,7 @@ from .core import conversions as cv
 from .core import tasks
 from .core.files import Staging
 from .core.jobs import Job, JobState
-from .core.scene_build import PER_LIGHT_LAYERS, BuiltScene, SceneInputError, build_scene
+from .core.scene_build import PER_LIGHT_LAYERS, BuiltScene, SceneInputError, build_scene, fog_box_media_by_object
 
 # Jobs running from the UI, by operator id (one at a time each); read by the panels.
 RUNNING: dict[str, Job] = {}
@@ -303,10 +303,11 @@ def _export_usd(context: bpy.types.Context, path: str, built: BuiltScene) -> str
         medium_props(empty, med)
         # A fog box's object carries its medium too, with bounds = "box": tyndall_usd then reads
         # its mesh as the medium's (turned) box, not as an occluder.
-        for i, name in built.fog_objects.items():
+        # (An instanced object's properties go onto every instance's prim: one name for all.)
+        for name, (i, medium_name) in fog_box_media_by_object(built).items():
             fobj = scene.objects.get(name)
             if fobj is not None:
-                medium_props(fobj, built.scene["media"][i])
+                medium_props(fobj, {**built.scene["media"][i], "name": medium_name})
                 setp(fobj, "tyndall:medium:bounds", "box")
         # Blender's exporter writes no IES shaping: the profile goes on the light data (exported
         # onto the SphereLight prim), where tyndall_usd reads it.

@@ -601,6 +601,52 @@ def test_export_stage_writes_fog_boxes_as_media(addon: None, tmp_path: Path) -> 
     assert sorted(m["name"] for m in leg["scene"]["meshes"]) == sorted(m["name"] for m in direct["meshes"])
 
 
+def test_export_stage_writes_instanced_fog_boxes_as_media(addon: None, tmp_path: Path) -> None:
+    """*Export Stage* with one fog box instanced twice (a collection excluded from the view
+    layer, two collection-instance empties): Blender's exporter writes the box object's
+    properties onto both instances' prims, and tyndall_usd reads back two media with the
+    instances' boxes, as the add-on's scene.json has them. The name they carry is the one the
+    instances share (``Fog: …``); before, both prims carried the last instance's name."""
+    from blender_addon.core.scene_build import BuiltScene, fog_box_media_by_object
+
+    usd_py = _usd_python()
+    make_scene()
+    sc = bpy.context.scene
+    fog = _fog_box(sc, "Fog", (0.0, 0.0, 0.0), (2.0, 1.5, 1.0), 0.2)
+    col = bpy.data.collections.new("FogCol")
+    sc.collection.children.link(col)
+    sc.collection.objects.unlink(fog)
+    col.objects.link(fog)
+    bpy.context.view_layer.layer_collection.children["FogCol"].exclude = True
+    for k, x in enumerate((-1.0, 1.5)):
+        e = bpy.data.objects.new(f"Inst{k}", None)
+        e.instance_type, e.instance_collection, e.location = "COLLECTION", col, (x, 0.5, 1.5)
+        sc.collection.objects.link(e)
+    bpy.context.view_layer.update()
+    out = tmp_path / "shot"
+    assert bpy.ops.tyndall.export_stage("EXEC_DEFAULT", directory=str(out)) == {"FINISHED"}
+    (tmp_path / "leg.py").write_text(_USD_LEG)
+    files = (tmp_path / "leg.py", out / "stage.usda", tmp_path / "rt.usda", tmp_path / "c.json")
+    r = subprocess.run([usd_py, *(str(f) for f in files)], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr[-3000:]
+    leg = json.loads((tmp_path / "c.json").read_text())
+    direct = json.loads((out / "scene.json").read_text())
+    want = sorted((m["bounds"]["box"]["min"], m["bounds"]["box"]["max"]) for m in direct["media"] if "bounds" in m)
+    names = [m["name"] for m in direct["media"] if "bounds" in m]
+    assert names == ["Inst0/Fog: Volume Scatter", "Inst1/Fog: Volume Scatter"]
+    got = [m for m in leg["scene"]["media"] if "bounds" in m]
+    assert len(got) == 2 and {m["name"] for m in got} == {"Fog: Volume Scatter"}
+    boxes = sorted((m["bounds"]["box"]["min"], m["bounds"]["box"]["max"]) for m in got)
+    for (wlo, whi), (glo, ghi) in zip(want, boxes, strict=True):
+        assert glo == pytest.approx(wlo, abs=1e-5) and ghi == pytest.approx(whi, abs=1e-5)
+    assert sorted(m["name"] for m in leg["scene"]["meshes"]) == sorted(m["name"] for m in direct["meshes"])
+    # The helper alone: one object, one medium → its own name; instances → the shared one.
+    media = [{"name": "Box: Volume Scatter"}, {"name": "A/Fog: Volume Scatter"}, {"name": "B/Fog: Volume Scatter"}]
+    objects = {0: "Box", 1: "Fog", 2: "Fog"}
+    built = BuiltScene(scene={"media": media}, ies_texts={}, light_names={}, notes=[], fog_objects=objects)
+    assert fog_box_media_by_object(built) == {"Box": (0, "Box: Volume Scatter"), "Fog": (1, "Fog: Volume Scatter")}
+
+
 def test_round_trip_through_usd_keeps_every_light_type(addon: None, tmp_path: Path) -> None:
     """Issue 5, round trip: a Blender scene (spot with an IES file, point, sun, camera) → the
     add-on's stage.usda (Blender's exporter + tyndall: properties) → Scene (tyndall_usd) → USD

@@ -464,6 +464,34 @@ def build_scene(data: SceneData) -> BuiltScene:
     )
 
 
+def fog_box_media_by_object(built: BuiltScene) -> dict[str, tuple[int, str]]:
+    """Per Blender object that is a fog box: the index of one of its media in
+    ``built.scene["media"]`` and the medium name its exported prim should carry.
+
+    An object instanced several times (a collection instance, say) is the box of one medium per
+    instance, named ``<instancer>/<object>: <node>``; Blender's USD exporter writes the object's
+    custom properties onto every instance's prim, so they can carry one name only: the one the
+    instances share, ``<object>: <node>`` (they share coefficients and phase, being one material).
+    """
+    by_object: dict[str, list[int]] = {}
+    for i, obj in built.fog_objects.items():
+        by_object.setdefault(obj, []).append(i)
+    out: dict[str, tuple[int, str]] = {}
+    for obj, indices in by_object.items():
+        names = [str(built.scene["media"][i]["name"]) for i in indices]
+        if len(indices) == 1:
+            out[obj] = (indices[0], names[0])
+            continue
+        marker = f"{obj}: "
+        tails = set()
+        for n in names:
+            at = n.find("/" + marker)
+            tails.add(n[at + 1 + len(marker) :] if at >= 0 else n[len(marker) :] if n.startswith(marker) else n)
+        shared = f"{marker}{tails.pop()}" if len(tails) == 1 else f"{obj} ({len(indices)} instances)"
+        out[obj] = (indices[0], shared)
+    return out
+
+
 def resolve_ies_paths(scene: dict[str, Any], folder: str) -> dict[str, Any]:
     """A copy of ``scene`` whose relative ``ies.file`` paths are made absolute against ``folder``."""
     out = dict(scene)
