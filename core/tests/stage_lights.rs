@@ -2233,3 +2233,81 @@ fn dense_wavy_layer_under_a_grazing_spot() {
         );
     }
 }
+
+/// A window light (parallel light through a vertical window whose lower
+/// edge lies inside the layer) grazing the same fog layer: its light
+/// enters the layer's top at 4.6°, up to 12.6 m from the window, and
+/// below the top starts inside it. The brute force finds the prism's faces on the ray by
+/// bisection ([`lit_boundaries`]).
+#[test]
+fn dense_fog_layer_under_a_grazing_window_light() {
+    use tyndall_core::light::window::WindowSource;
+    use tyndall_core::medium::fog_layer::FogLayer;
+    use tyndall_core::medium::phase::PhaseFunction;
+    use tyndall_core::render::stage::PreparedWindow;
+    use tyndall_core::scene::SunPath;
+    let (ground, top) = (0.0, 0.5);
+    let to_light = DVec3::new(-1.0, 0.1, 0.08).normalize();
+    let irradiance = 50.0;
+    // A vertical window in the plane x = −2, its lower edge inside the layer.
+    let corners = [[-2.0, -1.0, 0.3], [-2.0, 1.0, 0.3], [-2.0, 1.0, 1.5], [-2.0, -1.0, 1.5]];
+    let lights = StageLights {
+        points: vec![],
+        windows: vec![PreparedWindow {
+            casts_shadows: true,
+            light: WindowSource::new("w", to_light, [irradiance; 3], &corners),
+            shadows: None,
+        }],
+        dark: vec![],
+    };
+    let to_window = |x: DVec3| -> Option<DVec3> {
+        let s = (-2.0 - x.x) / to_light.x;
+        let p = x + to_light * s;
+        (s > 0.0 && p.y.abs() <= 1.0 && (0.3..=1.5).contains(&p.z)).then_some(p)
+    };
+    let inside = |z: f64| (ground..=top).contains(&z);
+    let slab_len = |a: DVec3, b: DVec3| -> f64 {
+        let v = b - a;
+        if v.z == 0.0 {
+            return if inside(a.z) { v.length() } else { 0.0 };
+        }
+        let (t0, t1) = ((ground - a.z) / v.z, (top - a.z) / v.z);
+        (t0.max(t1).min(1.0) - t0.min(t1).max(0.0)).max(0.0) * v.length()
+    };
+    for sigma in [1e-9, 30.0, 1e4] {
+        let (ss, st) = (sigma, 1.1 * sigma);
+        let media = vec![PreparedMedium::FogLayer(FogLayer {
+            name: "fog".into(),
+            ground,
+            top,
+            extinction: [st; 3],
+            scattering: [ss; 3],
+            phase: PhaseFunction::HenyeyGreenstein { g: 0.4 },
+            sun_path: SunPath::PerPoint,
+            min_sin_elevation: 0.0,
+        })];
+        let want = |o: DVec3, d: DVec3, s_max: f64| {
+            let f = |t: f64| -> f64 {
+                let x = o + d * t;
+                if !inside(x.z) {
+                    return 0.0;
+                }
+                let Some(p) = to_window(x) else { return 0.0 };
+                let tau = st * (slab_len(o, x) + slab_len(x, p));
+                ss * Phase::Hg(0.4).eval(d.dot(to_light)) * irradiance * (-tau).exp()
+            };
+            let mut cuts: Vec<f64> = [ground, top].iter().map(|z| (z - o.z) / d.z).filter(|t| t.is_finite()).collect();
+            cuts.extend(lit_boundaries(&|x| to_window(x).is_some(), o, d, s_max));
+            integrate_between_cuts(&f, &cuts, s_max, 1e-12)
+        };
+        let s_max_of = |o: DVec3, d: DVec3| if d.z < 0.0 { (ground - o.z) / d.z } else { 30.0 };
+        check_layer_rays(
+            &format!("window over fog layer σ_s = {sigma:e}"),
+            &lights,
+            &media,
+            &layer_rays(top, top),
+            &s_max_of,
+            &want,
+        );
+    }
+}
