@@ -1891,11 +1891,11 @@ fn many_hidden_casters_along_one_ray() {
 
 // ------------------------------------------------------------- dense layers
 
-/// A wide spot 8 cm above the crests of a dense lower layer, aimed almost
-/// horizontally along it: light paths that graze the layer's top, cross
-/// its waves, and run for metres inside it.
-fn grazing_spot(top: f64) -> (StageLights<3>, RefSpot) {
-    let pos = DVec3::new(0.0, 0.0, top + 0.08);
+/// A wide spot at height `z` (8 cm above the crests of a dense lower
+/// layer, or inside it), aimed almost horizontally along the layer: light
+/// paths that graze its top, cross its waves, and run for metres inside it.
+fn grazing_spot(z: f64) -> (StageLights<3>, RefSpot) {
+    let pos = DVec3::new(0.0, 0.0, z);
     let axis = DVec3::new(1.0, 0.1, -0.08).normalize();
     let spot = SpotLight {
         casts_shadows: true,
@@ -2028,15 +2028,15 @@ fn check_layer_rays(
 }
 
 /// Klassen's fog layer (a flat slab) as the dense lower layer, σ_s from
-/// 1e-9 to 1e4 m⁻¹: the library cuts the view ray at the slab's planes and
-/// finds its depth levels; the brute force uses the exact slab lengths.
+/// 1e-9 to 1e4 m⁻¹, the spot above it and 5 cm inside it: the library cuts
+/// the view ray at the slab's planes and finds its depth levels; the brute
+/// force uses the exact slab lengths.
 #[test]
 fn dense_fog_layer_under_a_grazing_spot() {
     use tyndall_core::medium::fog_layer::FogLayer;
     use tyndall_core::medium::phase::PhaseFunction;
     use tyndall_core::scene::SunPath;
     let (ground, top) = (0.0, 0.5);
-    let (lights, spot) = grazing_spot(top);
     let inside = |z: f64| (ground..=top).contains(&z);
     // Length of a → b inside the slab.
     let slab_len = |a: DVec3, b: DVec3| -> f64 {
@@ -2047,7 +2047,8 @@ fn dense_fog_layer_under_a_grazing_spot() {
         let (t0, t1) = ((ground - a.z) / v.z, (top - a.z) / v.z);
         (t0.max(t1).min(1.0) - t0.min(t1).max(0.0)).max(0.0) * v.length()
     };
-    for sigma in [1e-9, 30.0, 1e4] {
+    for (sigma, light_z) in [1e-9, 30.0, 1e4].into_iter().flat_map(|s| [(s, top + 0.08), (s, top - 0.05)]) {
+        let (lights, spot) = grazing_spot(light_z);
         let (ss, st) = (sigma, 1.1 * sigma);
         let media = vec![PreparedMedium::FogLayer(FogLayer {
             name: "fog".into(),
@@ -2076,7 +2077,7 @@ fn dense_fog_layer_under_a_grazing_spot() {
         };
         let s_max_of = |o: DVec3, d: DVec3| if d.z < 0.0 { (ground - o.z) / d.z } else { 30.0 };
         check_layer_rays(
-            &format!("fog layer σ_s = {sigma:e}"),
+            &format!("fog layer σ_s = {sigma:e}, light at z = {light_z}"),
             &lights,
             &media,
             &layer_rays(top, top),
@@ -2172,7 +2173,7 @@ fn dense_wavy_layer_under_a_grazing_spot() {
             .map(|w| (w[1] - w[0]) * len)
             .sum()
     };
-    let (lights, spot) = grazing_spot(crest);
+    let (lights, spot) = grazing_spot(crest + 0.08);
     for sigma in [1e-9, 30.0, 1e4] {
         let (ss, st) = (sigma, 1.1 * sigma);
         let media = vec![PreparedMedium::HeightFieldLayer(HeightFieldLayer::new(
