@@ -2027,63 +2027,83 @@ fn check_layer_rays(
     assert_eq!(within, rays.len(), "{what}: tolerance missed");
 }
 
+/// The dense fog layer of the tests below: Klassen's flat slab, 0 ≤ z ≤ 0.5 m.
+const FOG_SLAB: (f64, f64) = (0.0, 0.5);
+
+/// [`FOG_SLAB`] with σ_s = `sigma`, σ_t = 1.1·σ_s, Henyey–Greenstein g = 0.4.
+fn dense_fog_layer(sigma: f64) -> Vec<PreparedMedium<3>> {
+    use tyndall_core::medium::fog_layer::FogLayer;
+    use tyndall_core::medium::phase::PhaseFunction;
+    use tyndall_core::scene::SunPath;
+    vec![PreparedMedium::FogLayer(FogLayer {
+        name: "fog".into(),
+        ground: FOG_SLAB.0,
+        top: FOG_SLAB.1,
+        extinction: [1.1 * sigma; 3],
+        scattering: [sigma; 3],
+        phase: PhaseFunction::HenyeyGreenstein { g: 0.4 },
+        sun_path: SunPath::PerPoint,
+        min_sin_elevation: 0.0,
+    })]
+}
+
+/// Whether height `z` lies in [`FOG_SLAB`].
+fn in_fog_slab(z: f64) -> bool {
+    (FOG_SLAB.0..=FOG_SLAB.1).contains(&z)
+}
+
+/// Where `o + t·d` crosses the planes of [`FOG_SLAB`].
+fn fog_slab_crossings(o: DVec3, d: DVec3) -> Vec<f64> {
+    [FOG_SLAB.0, FOG_SLAB.1]
+        .iter()
+        .map(|z| (z - o.z) / d.z)
+        .filter(|t| t.is_finite())
+        .collect()
+}
+
+/// The end of a view ray over [`FOG_SLAB`]: the ground plane, or 30 m.
+fn fog_slab_ray_end(o: DVec3, d: DVec3) -> f64 {
+    if d.z < 0.0 { (FOG_SLAB.0 - o.z) / d.z } else { 30.0 }
+}
+
+/// The length of the segment `a → b` inside [`FOG_SLAB`], exactly.
+fn fog_slab_length(a: DVec3, b: DVec3) -> f64 {
+    let (ground, top) = FOG_SLAB;
+    let v = b - a;
+    if v.z == 0.0 {
+        return if in_fog_slab(a.z) { v.length() } else { 0.0 };
+    }
+    let (t0, t1) = ((ground - a.z) / v.z, (top - a.z) / v.z);
+    (t0.max(t1).min(1.0) - t0.min(t1).max(0.0)).max(0.0) * v.length()
+}
+
 /// Klassen's fog layer (a flat slab) as the dense lower layer, σ_s from
 /// 1e-9 to 1e4 m⁻¹, the spot above it and 5 cm inside it: the library cuts
 /// the view ray at the slab's planes and finds its depth levels; the brute
 /// force uses the exact slab lengths.
 #[test]
 fn dense_fog_layer_under_a_grazing_spot() {
-    use tyndall_core::medium::fog_layer::FogLayer;
-    use tyndall_core::medium::phase::PhaseFunction;
-    use tyndall_core::scene::SunPath;
-    let (ground, top) = (0.0, 0.5);
-    let inside = |z: f64| (ground..=top).contains(&z);
-    // Length of a → b inside the slab.
-    let slab_len = |a: DVec3, b: DVec3| -> f64 {
-        let v = b - a;
-        if v.z == 0.0 {
-            return if inside(a.z) { v.length() } else { 0.0 };
-        }
-        let (t0, t1) = ((ground - a.z) / v.z, (top - a.z) / v.z);
-        (t0.max(t1).min(1.0) - t0.min(t1).max(0.0)).max(0.0) * v.length()
-    };
+    let top = FOG_SLAB.1;
     for (sigma, light_z) in [1e-9, 30.0, 1e4].into_iter().flat_map(|s| [(s, top + 0.08), (s, top - 0.05)]) {
         let (lights, spot) = grazing_spot(light_z);
         let (ss, st) = (sigma, 1.1 * sigma);
-        let media = vec![PreparedMedium::FogLayer(FogLayer {
-            name: "fog".into(),
-            ground,
-            top,
-            extinction: [st; 3],
-            scattering: [ss; 3],
-            phase: PhaseFunction::HenyeyGreenstein { g: 0.4 },
-            sun_path: SunPath::PerPoint,
-            min_sin_elevation: 0.0,
-        })];
+        let media = dense_fog_layer(sigma);
         let want = |o: DVec3, d: DVec3, s_max: f64| {
             let f = |t: f64| -> f64 {
                 let x = o + d * t;
-                if !inside(x.z) {
+                if !in_fog_slab(x.z) {
                     return 0.0;
                 }
                 let v = x - spot.pos;
                 let r = v.length();
                 let m = spot.mask(v / r);
-                let tau = st * (slab_len(o, x) + slab_len(x, spot.pos));
+                let tau = st * (fog_slab_length(o, x) + fog_slab_length(x, spot.pos));
                 ss * Phase::Hg(0.4).eval(-d.dot(v / r)) * spot.intensity * m / (r * r) * (-tau).exp()
             };
-            let cuts: Vec<f64> = [ground, top].iter().map(|z| (z - o.z) / d.z).filter(|t| t.is_finite()).collect();
-            integrate_between_cuts(&f, &cuts, s_max, 1e-12)
+            integrate_between_cuts(&f, &fog_slab_crossings(o, d), s_max, 1e-12)
         };
-        let s_max_of = |o: DVec3, d: DVec3| if d.z < 0.0 { (ground - o.z) / d.z } else { 30.0 };
-        check_layer_rays(
-            &format!("fog layer σ_s = {sigma:e}, light at z = {light_z}"),
-            &lights,
-            &media,
-            &layer_rays(top, top),
-            &s_max_of,
-            &want,
-        );
+        let what = format!("fog layer σ_s = {sigma:e}, light at z = {light_z}");
+        check_layer_rays(&what, &lights, &media, &layer_rays(top, top), &fog_slab_ray_end, &want);
     }
 }
 
@@ -2243,11 +2263,8 @@ fn dense_wavy_layer_under_a_grazing_spot() {
 #[test]
 fn dense_fog_layer_under_a_grazing_window_light() {
     use tyndall_core::light::window::WindowSource;
-    use tyndall_core::medium::fog_layer::FogLayer;
-    use tyndall_core::medium::phase::PhaseFunction;
     use tyndall_core::render::stage::PreparedWindow;
-    use tyndall_core::scene::SunPath;
-    let (ground, top) = (0.0, 0.5);
+    let top = FOG_SLAB.1;
     let to_light = DVec3::new(-1.0, 0.1, 0.08).normalize();
     let irradiance = 50.0;
     // A vertical window in the plane x = −2, its lower edge inside the layer.
@@ -2266,49 +2283,24 @@ fn dense_fog_layer_under_a_grazing_window_light() {
         let p = x + to_light * s;
         (s > 0.0 && p.y.abs() <= 1.0 && (0.3..=1.5).contains(&p.z)).then_some(p)
     };
-    let inside = |z: f64| (ground..=top).contains(&z);
-    let slab_len = |a: DVec3, b: DVec3| -> f64 {
-        let v = b - a;
-        if v.z == 0.0 {
-            return if inside(a.z) { v.length() } else { 0.0 };
-        }
-        let (t0, t1) = ((ground - a.z) / v.z, (top - a.z) / v.z);
-        (t0.max(t1).min(1.0) - t0.min(t1).max(0.0)).max(0.0) * v.length()
-    };
     for sigma in [1e-9, 30.0, 1e4] {
         let (ss, st) = (sigma, 1.1 * sigma);
-        let media = vec![PreparedMedium::FogLayer(FogLayer {
-            name: "fog".into(),
-            ground,
-            top,
-            extinction: [st; 3],
-            scattering: [ss; 3],
-            phase: PhaseFunction::HenyeyGreenstein { g: 0.4 },
-            sun_path: SunPath::PerPoint,
-            min_sin_elevation: 0.0,
-        })];
+        let media = dense_fog_layer(sigma);
         let want = |o: DVec3, d: DVec3, s_max: f64| {
             let f = |t: f64| -> f64 {
                 let x = o + d * t;
-                if !inside(x.z) {
+                if !in_fog_slab(x.z) {
                     return 0.0;
                 }
                 let Some(p) = to_window(x) else { return 0.0 };
-                let tau = st * (slab_len(o, x) + slab_len(x, p));
+                let tau = st * (fog_slab_length(o, x) + fog_slab_length(x, p));
                 ss * Phase::Hg(0.4).eval(d.dot(to_light)) * irradiance * (-tau).exp()
             };
-            let mut cuts: Vec<f64> = [ground, top].iter().map(|z| (z - o.z) / d.z).filter(|t| t.is_finite()).collect();
+            let mut cuts = fog_slab_crossings(o, d);
             cuts.extend(lit_boundaries(&|x| to_window(x).is_some(), o, d, s_max));
             integrate_between_cuts(&f, &cuts, s_max, 1e-12)
         };
-        let s_max_of = |o: DVec3, d: DVec3| if d.z < 0.0 { (ground - o.z) / d.z } else { 30.0 };
-        check_layer_rays(
-            &format!("window over fog layer σ_s = {sigma:e}"),
-            &lights,
-            &media,
-            &layer_rays(top, top),
-            &s_max_of,
-            &want,
-        );
+        let what = format!("window over fog layer σ_s = {sigma:e}");
+        check_layer_rays(&what, &lights, &media, &layer_rays(top, top), &fog_slab_ray_end, &want);
     }
 }
