@@ -425,11 +425,15 @@ fn plain_media<const C: usize>(media: &[PreparedMedium<C>], ray: &ViewRay, l: &P
 
 /// Whether a medium's optical depth along a light path can change by many
 /// units within a short stretch of a view ray: a box that bounds a medium
-/// (its shadow), a smoke ellipsoid. The world's haze and height fog change
-/// on the scale of the whole path (the graded mesh at the closest approach
-/// covers a point light's path through them).
+/// (its shadow), a smoke ellipsoid, a fog layer's slab (a light grazing its
+/// top: 2 mm above a slab of σ_t = 33 m⁻¹, an eye 20 m away and 5 cm deep
+/// looking up saw 1.5e-7, all of it within millimetres of the top, and got
+/// 4e-32 ± 2e-15). The world's haze and height fog change on the scale of
+/// the whole path (the graded mesh at the closest approach covers a point
+/// light's path through them).
 fn bounded_on_light_path<const C: usize>(m: &PreparedMedium<C>) -> bool {
-    matches!(m, PreparedMedium::Homogeneous(h) if h.bounds.is_some()) || matches!(m, PreparedMedium::Ellipsoid(_))
+    matches!(m, PreparedMedium::Homogeneous(h) if h.bounds.is_some())
+        || matches!(m, PreparedMedium::Ellipsoid(_) | PreparedMedium::FogLayer(_))
 }
 
 /// The optical depth of the segment `a → b` in the media of
