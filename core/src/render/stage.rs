@@ -428,7 +428,7 @@ fn plain_media<const C: usize>(media: &[PreparedMedium<C>], ray: &ViewRay, l: &P
 /// (its shadow), a smoke ellipsoid, a fog layer's slab (a light grazing its
 /// top: 2 mm above a slab of σ_t = 33 m⁻¹, an eye 20 m away and 5 cm deep
 /// looking up saw 1.5e-7, all of it within millimetres of the top, and got
-/// 4e-32 ± 2e-15). The world's haze and height fog change on the scale of
+/// 9.5e-31 ± 1.8e-15). The world's haze and height fog change on the scale of
 /// the whole path (the graded mesh at the closest approach covers a point
 /// light's path through them).
 fn bounded_on_light_path<const C: usize>(m: &PreparedMedium<C>) -> bool {
