@@ -1931,9 +1931,9 @@ fn grazing_spot(z: f64) -> (StageLights<3>, RefSpot) {
 }
 
 /// Rays for [`grazing_spot`] over a layer whose top lies between `low` and
-/// `top`: eyes inside the layer 1e-6 … 0.2 m below `low` looking up at
-/// 2° … 89°, along it and down 10°; eyes 1e-6 … 0.1 m above `top` looking down
-/// at 0.1° … 30°.
+/// `top`: eyes inside the layer at x = `eye_x`, 1e-6 … 0.2 m below `low`,
+/// looking up at 2° … 89°, along it and down 10°; eyes 1e-6 … 0.1 m above
+/// `top` (at x = −0.5) looking down at 0.1° … 30°.
 fn layer_rays(low: f64, top: f64, eye_x: f64) -> Vec<(DVec3, DVec3)> {
     let mut rays = Vec::new();
     for depth in [1e-6, 1e-3, 0.05, 0.2] {
