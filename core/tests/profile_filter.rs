@@ -6,7 +6,7 @@
 //! its estimate, on the stiff cases the model meets — a 0.5° beam narrower
 //! than a pixel, a 60° cone in dense haze, two crossing coloured spots, a
 //! forward-scattering lobe, a light whose medium is not dimmed (Cast Shadow
-//! off), and a beam cut by the floor.
+//! off), a beam cut by the floor, and a box's shadow in a beam.
 
 use tyndall_core::{Images, Report, Scene, render};
 
@@ -257,6 +257,21 @@ fn a_narrow_beam_is_filtered_from_its_profile_within_its_estimate() {
     inside["camera"]["resolution"] = serde_json::json!([64, 36]);
     let (served, _, _) = compare("camera inside a dense beam", inside, 0.1);
     assert!(served > 20, "the profile filtered only {served} pixels");
+    // The Cycles reference's box occluder over a floor: the beam's edges
+    // clear of the box's shadow pyramids are served from the profile (with
+    // several caster planes, every chord was sent to the lattice before).
+    let mut boxed: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/../tests/data/cycles/spot_box_occluder.json")).unwrap(),
+    )
+    .unwrap();
+    boxed["camera"]["resolution"] = serde_json::json!([64, 36]);
+    // (23 and 26 pixels, the windows no band reaches, with every chord sent to the lattice.)
+    let (served, _, _) = compare("box occluder", boxed.clone(), 0.1);
+    assert!(served > 60, "the profile filtered only {served} pixels");
+    // The same box turned about all three axes and moved into the beam's edge.
+    boxed["meshes"][1]["transform"] = serde_json::json!({"translation": [-0.5, 0.0, 0.0], "rotation_wxyz": [0.9, 0.2, 0.3, 0.1]});
+    let (served, _, _) = compare("turned box at the beam's edge", boxed, 0.1);
+    assert!(served > 100, "the profile filtered only {served} pixels");
     // Cast Shadow off: no extinction on the light path.
     into["lights"][0]["casts_shadows"] = serde_json::json!(false);
     into["media"][0]["phase"] = serde_json::json!({"type": "rayleigh"});

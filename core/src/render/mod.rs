@@ -1525,20 +1525,15 @@ fn render_channels<const C: usize, const K: usize>(
                 Some((p, st)) => (p, st.as_slice()),
                 None => (&planes, tris.as_slice()),
             };
-            let margin = 1e-9 * (1.0 + eye.abs().max_element());
             let points = stage_lights.points.iter().map(|p| {
                 if !p.casts_shadows {
                     return smooth::Casters::None;
                 }
                 let l = &p.light;
                 let (apex, axis, cos_reach) = (l.position, l.frame.axis, l.cos_reach);
-                smooth::Casters::of(
-                    caster_tris,
-                    caster_planes,
-                    eye,
-                    |c, r| stage::sphere_may_touch_cone(apex, axis, cos_reach, c, r),
-                    |n, offset| n.dot(apex) - offset > margin,
-                )
+                smooth::Casters::of(caster_tris, caster_planes, eye, apex, |c, r| {
+                    stage::sphere_may_touch_cone(apex, axis, cos_reach, c, r)
+                })
             });
             // A window's prism has flat faces and edges: where a ray's entry
             // or exit face changes, the in-scatter has a kink its code does

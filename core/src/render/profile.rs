@@ -324,7 +324,8 @@ struct ImagePlanes {
 impl BeamLight {
     /// `servable`: whether the model can serve its beam at all (false for a
     /// light whose casters may shadow any chord, [`Casters::Any`]: it is then
-    /// only another light's cone to keep clear of, and builds no table).
+    /// only another light's cone to keep clear of, and builds no table; with
+    /// casters on a plane or in [`Casters::Pyramids`], each chord is asked).
     /// `None` for a camera without ray planes affine in the image point (an
     /// equirectangular one, which has no pixel filter either).
     pub(crate) fn new<const C: usize>(

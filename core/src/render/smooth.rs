@@ -19,8 +19,9 @@
 //! 3. are not shadowed: every light they cross has no shadow casters, or
 //!    casters on one plane with the light and the eye on the same side, and
 //!    the rays end on the eye's side of it, or have no end and do not head
-//!    towards it (a caster shadows only the far side of its plane) — part
-//!    of the code too;
+//!    towards it (a caster shadows only the far side of its plane), or
+//!    casters on a few planes (a box on a floor) and the rays enter none of
+//!    the planes' shadow pyramids ([`ShadowPyramid`]) — part of the code too;
 //!
 //! in media without internal boundaries (homogeneous without bounds, height
 //! fog) and lights whose distribution is smooth between its kinks (Blender
@@ -137,7 +138,25 @@ impl Planes {
             start += m.triangles.len();
         }
         let mesh_at = |i: usize| mesh_of[mesh_of.partition_point(|&(s, _)| s <= i) - 1].1;
-        let plane_of = |t: &Triangle| -> Option<(DVec3, f64, [i64; 4])> {
+        // Per mesh, the scale of the offsets' key: one for all its
+        // triangles, so that two triangles of one face share their key
+        // whichever vertex comes first (with the first vertex's own scale,
+        // a rotated box's faces split in two).
+        let mesh_scale: Vec<f64> = mesh_of
+            .iter()
+            .zip(meshes)
+            .map(|(&(s, _), m)| {
+                let end = (s + m.triangles.len()).min(tris.len());
+                let far = tris
+                    .get(s.min(end)..end)
+                    .unwrap_or(&[])
+                    .iter()
+                    .flat_map(|t| t.v)
+                    .fold(0.0, |m, v| v.abs().max_element().max(m));
+                1.0 + far
+            })
+            .collect();
+        let plane_of = |i: usize, t: &Triangle| -> Option<(DVec3, f64, [i64; 4])> {
             if t.is_degenerate() {
                 return None;
             }
@@ -148,7 +167,7 @@ impl Planes {
                 n = -n;
             }
             let offset = n.dot(a);
-            let scale = 1.0 + a.abs().max_element();
+            let scale = mesh_scale[mesh_at(i) as usize];
             let q = |v: f64| (v * 1e9).round() as i64;
             Some((n, offset, [q(n.x), q(n.y), q(n.z), q(offset / scale)]))
         };
@@ -158,7 +177,11 @@ impl Planes {
                 return None;
             }
             let last = (first + PLANE_CHUNK).min(tris.len()).min(start);
-            tris[first..last].par_iter().map(plane_of).collect_into_vec(&mut found);
+            tris[first..last]
+                .par_iter()
+                .enumerate()
+                .map(|(k, t)| plane_of(first + k, t))
+                .collect_into_vec(&mut found);
             for (k, f) in found.iter().enumerate() {
                 let Some((n, offset, key)) = *f else { continue };
                 let i = first + k;
@@ -190,7 +213,7 @@ impl Planes {
 }
 
 /// Where a light's shadow casters lie.
-#[derive(Debug, Clone, Copy, PartialEq)]
+#[derive(Debug, Clone, PartialEq)]
 pub enum Casters {
     /// No triangle may touch the light's volume.
     None,
@@ -203,23 +226,120 @@ pub enum Casters {
         /// `normal · x` on the plane, m.
         offset: f64,
     },
+    /// On a few planes (at most [`MAX_PYRAMIDS`]): each plane's casters
+    /// shadow only what lies inside its [`ShadowPyramid`].
+    Pyramids(Vec<ShadowPyramid>),
     /// Anywhere else: the light may be shadowed between two samples.
     Any,
 }
 
+/// The most caster planes per light that [`Casters::Pyramids`] tests a
+/// ray against one by one (a box and its floor are 7); more are [`Casters::Any`].
+pub const MAX_PYRAMIDS: usize = 16;
+
+/// The most side planes of all of a light's [`ShadowPyramid`]s together
+/// (a ray is tested against each; a box's faces have 4 each, a disc of 64
+/// segments 64).
+pub const MAX_PYRAMID_SIDES: usize = 128;
+
+/// Where one plane's caster triangles can shadow a point light: beyond
+/// their plane (on the side away from the light) and inside the pyramid
+/// from the light over the convex hull of their vertices. A point there is
+/// the only kind whose segment to the light can cross the triangles, so the
+/// region holds their shadow: exactly for a convex polygon (a box's face),
+/// a superset otherwise. A closed occluder's shadow is the union of its
+/// faces' regions.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ShadowPyramid {
+    /// Half-spaces `n · x ≥ offset` through the light, one per hull edge
+    /// (unit `n`, pointing inwards; `offset` already lowered by a rounding
+    /// margin, so that the test is conservative).
+    sides: Vec<(DVec3, f64)>,
+    /// The plane: unit normal pointing away from the light, `n · x` on it.
+    beyond: (DVec3, f64),
+}
+
+impl ShadowPyramid {
+    /// The pyramid of the triangles with vertices `points` (all on the plane
+    /// `normal · x = offset`, unit `normal`) from the light at `apex`;
+    /// `None` when the light lies on the plane (within `margin`, m).
+    fn new(points: &[DVec3], (normal, offset): (DVec3, f64), apex: DVec3, margin: f64) -> Option<ShadowPyramid> {
+        let side = normal.dot(apex) - offset;
+        if side.abs() <= margin || !side.is_finite() {
+            return None;
+        }
+        let beyond = if side > 0.0 { (-normal, -offset) } else { (normal, offset) };
+        // The convex hull in the plane (Andrew's monotone chain).
+        let e1 = normal.any_orthonormal_vector();
+        let e2 = normal.cross(e1);
+        let mut flat: Vec<(f64, f64, DVec3)> = points.iter().map(|&p| (p.dot(e1), p.dot(e2), p)).collect();
+        flat.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.total_cmp(&b.1)));
+        let turn =
+            |o: &(f64, f64, DVec3), a: &(f64, f64, DVec3), b: &(f64, f64, DVec3)| (a.0 - o.0) * (b.1 - o.1) - (a.1 - o.1) * (b.0 - o.0);
+        let mut hull: Vec<(f64, f64, DVec3)> = Vec::with_capacity(flat.len() + 1);
+        for pass in 0..2 {
+            let start = hull.len();
+            let iter: Box<dyn Iterator<Item = &(f64, f64, DVec3)>> = if pass == 0 {
+                Box::new(flat.iter())
+            } else {
+                Box::new(flat.iter().rev())
+            };
+            for p in iter {
+                while hull.len() >= start + 2 && turn(&hull[hull.len() - 2], &hull[hull.len() - 1], p) <= 0.0 {
+                    hull.pop();
+                }
+                hull.push(*p);
+            }
+            hull.pop();
+        }
+        if hull.len() < 3 {
+            return None;
+        }
+        let centre = hull.iter().map(|p| p.2).sum::<DVec3>() / hull.len() as f64;
+        let mut sides = Vec::with_capacity(hull.len());
+        for (i, a) in hull.iter().enumerate() {
+            let b = &hull[(i + 1) % hull.len()];
+            let mut n = (a.2 - apex).cross(b.2 - apex).try_normalize()?;
+            if n.dot(centre - apex) < 0.0 {
+                n = -n;
+            }
+            sides.push((n, n.dot(apex) - margin));
+        }
+        Some(ShadowPyramid { sides, beyond })
+    }
+
+    /// Whether the segment `eye + t·dir`, `0 ≤ t ≤ t_end` (`t_end` may be
+    /// infinite), reaches inside the pyramid farther than `tol` (m) beyond
+    /// the plane: a ray ending on the plane (a floor hit) stays outside.
+    fn reached_by(&self, eye: DVec3, dir: DVec3, t_end: f64, tol: f64) -> bool {
+        let (mut t0, mut t1) = (0.0f64, t_end);
+        let (bn, bo) = self.beyond;
+        for (n, offset, margin) in self.sides.iter().map(|&(n, o)| (n, o, 0.0)).chain(std::iter::once((bn, bo, -tol))) {
+            // Inside: n·eye − offset + margin + t·(n·dir) ≥ 0.
+            let a = n.dot(eye) - offset + margin;
+            let b = n.dot(dir);
+            if b > 0.0 {
+                t0 = t0.max(-a / b);
+            } else if b < 0.0 {
+                t1 = t1.min(-a / b);
+            } else if a < 0.0 {
+                return false;
+            }
+            if t0 > t1 {
+                return false;
+            }
+        }
+        true
+    }
+}
+
 impl Casters {
-    /// Which casters the triangles passing `may_touch(centre, radius)` are:
-    /// `light_side(normal, offset)` says whether the light is strictly on
-    /// the side of the plane `normal · x = offset` that the unit `normal`
-    /// points to (the eye's side).
-    pub fn of(
-        tris: &[Triangle],
-        planes: &Planes,
-        eye: DVec3,
-        may_touch: impl Fn(DVec3, f64) -> bool,
-        light_side: impl Fn(DVec3, f64) -> bool,
-    ) -> Casters {
-        let mut group = 0u32;
+    /// Which casters the triangles passing `may_touch(centre, radius)` are,
+    /// for the light at `apex`.
+    pub fn of(tris: &[Triangle], planes: &Planes, eye: DVec3, apex: DVec3, may_touch: impl Fn(DVec3, f64) -> bool) -> Casters {
+        let margin = 1e-9 * (1.0 + eye.abs().max_element().max(apex.abs().max_element()));
+        // The touching triangles' vertices per plane, in order of first touch.
+        let mut groups: Vec<(u32, Vec<DVec3>)> = Vec::new();
         for (i, t) in tris.iter().enumerate() {
             let g = planes.group_of(i as u32);
             if g == 0 {
@@ -230,24 +350,32 @@ impl Casters {
             if !may_touch(centre, radius) {
                 continue;
             }
-            if group != 0 && group != g {
-                return Casters::Any;
+            match groups.iter().position(|(h, _)| *h == g) {
+                Some(j) => groups[j].1.extend_from_slice(&t.v),
+                None if groups.len() < MAX_PYRAMIDS => groups.push((g, t.v.to_vec())),
+                None => return Casters::Any,
             }
-            group = g;
         }
-        if group == 0 {
+        let Some(&(first, _)) = groups.first() else {
             return Casters::None;
+        };
+        if groups.len() == 1 {
+            let (mut normal, mut offset) = planes.planes[first as usize - 1];
+            if normal.dot(eye) - offset < 0.0 {
+                normal = -normal;
+                offset = -offset;
+            }
+            if normal.dot(eye) - offset > margin && normal.dot(apex) - offset > margin {
+                return Casters::Plane { normal, offset };
+            }
         }
-        let (mut normal, mut offset) = planes.planes[group as usize - 1];
-        if normal.dot(eye) - offset < 0.0 {
-            normal = -normal;
-            offset = -offset;
-        }
-        let margin = 1e-9 * (1.0 + eye.abs().max_element());
-        if normal.dot(eye) - offset > margin && light_side(normal, offset) {
-            Casters::Plane { normal, offset }
-        } else {
-            Casters::Any
+        let pyramids: Option<Vec<ShadowPyramid>> = groups
+            .iter()
+            .map(|(g, points)| ShadowPyramid::new(points, planes.planes[*g as usize - 1], apex, margin))
+            .collect();
+        match pyramids {
+            Some(p) if p.iter().map(|p| p.sides.len()).sum::<usize>() <= MAX_PYRAMID_SIDES => Casters::Pyramids(p),
+            _ => Casters::Any,
         }
     }
 
@@ -255,9 +383,9 @@ impl Casters {
     /// distance `t_end` (m, may be infinite: no surface, no clip end), that
     /// crosses the light may be shadowed.
     pub fn may_shadow(&self, eye: DVec3, dir: DVec3, t_end: f64) -> bool {
-        match *self {
+        match self {
             Casters::None => false,
-            Casters::Plane { normal, offset } if t_end.is_finite() => {
+            &Casters::Plane { normal, offset } if t_end.is_finite() => {
                 // On the plane (a floor hit) counts as the eye's side.
                 let end = eye + dir * t_end;
                 let tol = 1e-9 * (1.0 + offset.abs() + end.abs().max_element());
@@ -267,7 +395,18 @@ impl Casters {
             // strictly on it) unless it heads towards the plane: the plane
             // is infinite, its casters are not, so beyond them the ray may
             // reach the shadowed side.
-            Casters::Plane { normal, .. } => normal.dot(dir) < 0.0 || normal.dot(dir).is_nan(),
+            &Casters::Plane { normal, .. } => normal.dot(dir) < 0.0 || normal.dot(dir).is_nan(),
+            Casters::Pyramids(pyramids) => {
+                if !dir.is_finite() || t_end.is_nan() {
+                    return true;
+                }
+                // As for a plane: a hit on a caster's plane is on its near side.
+                let reach = if t_end.is_finite() { t_end } else { 0.0 };
+                pyramids.iter().any(|p| {
+                    let tol = 1e-9 * (1.0 + p.beyond.1.abs() + eye.abs().max_element() + reach);
+                    p.reached_by(eye, dir, t_end, tol)
+                })
+            }
             Casters::Any => true,
         }
     }
@@ -441,6 +580,115 @@ mod tests {
         assert!(interpolate(&st, (2, 1), 0.1).is_none(), "another surface");
         st[4] = None;
         assert!(interpolate(&st, (1, 1), 0.1).is_none(), "a sample that may not be read");
+    }
+
+    /// A tilted box over a floor and a slanted card, under a light: every
+    /// ray that a brute force finds shadowed somewhere (segments from 4000
+    /// points along it to the light, against the triangles) is one the
+    /// pyramids say may be, and most unshadowed rays in the light's reach
+    /// are told apart from them.
+    #[test]
+    fn shadow_pyramids_hold_every_shadowed_ray() {
+        use crate::geometry::bvh::Bvh;
+        let mut state = 0x9e37_79b9_7f4a_7c15u64;
+        let mut rand = move || {
+            // splitmix64
+            state = state.wrapping_add(0x9e37_79b9_7f4a_7c15);
+            let mut z = state;
+            z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+            z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+            ((z ^ (z >> 31)) >> 11) as f64 / (1u64 << 53) as f64
+        };
+        let cube: Vec<[f64; 3]> = (0..8)
+            .map(|i| [(i & 1) as f64 - 0.5, ((i >> 1) & 1) as f64 - 0.5, ((i >> 2) & 1) as f64 - 0.5])
+            .collect();
+        let cube_tris = vec![
+            [0, 2, 1],
+            [1, 2, 3],
+            [4, 5, 6],
+            [5, 7, 6],
+            [0, 1, 4],
+            [1, 5, 4],
+            [2, 6, 3],
+            [3, 6, 7],
+            [0, 4, 2],
+            [2, 4, 6],
+            [1, 3, 5],
+            [3, 7, 5],
+        ];
+        let mesh = |name: &str, positions: Vec<[f64; 3]>, triangles: Vec<[u32; 3]>, transform: crate::scene::Transform| Mesh {
+            name: name.into(),
+            positions,
+            triangles,
+            transform,
+            visible_to_camera: true,
+            casts_shadows: true,
+        };
+        let meshes = vec![
+            mesh(
+                "floor",
+                vec![[-30.0, -30.0, 0.0], [30.0, -30.0, 0.0], [30.0, 30.0, 0.0], [-30.0, 30.0, 0.0]],
+                vec![[0, 1, 2], [0, 2, 3]],
+                Default::default(),
+            ),
+            mesh(
+                "box",
+                cube,
+                cube_tris,
+                crate::scene::Transform {
+                    translation: Some([0.3, -0.2, 2.8]),
+                    rotation_wxyz: Some([0.9, 0.2, 0.3, 0.1]),
+                    scale: Some([0.8, 0.6, 0.7]),
+                    ..Default::default()
+                },
+            ),
+            mesh(
+                "card",
+                vec![[-1.5, 0.5, 1.2], [-0.6, 0.9, 1.9], [-0.7, 1.6, 1.5]],
+                vec![[0, 1, 2]],
+                Default::default(),
+            ),
+        ];
+        let (tris, _) = crate::geometry::world_triangles(&meshes);
+        let planes = Planes::new(&meshes, &tris);
+        let apex = DVec3::new(0.1, 0.2, 5.5);
+        let bvh = Bvh::build(tris.clone());
+        let mut counts = [0usize; 3]; // shadowed, unshadowed told apart, unshadowed flagged
+        for trial in 0..3000 {
+            let eye = match trial % 3 {
+                0 => DVec3::new(0.0, -10.0, 2.5),
+                1 => DVec3::new(8.0 * rand() - 4.0, 8.0 * rand() - 4.0, 0.2 + 5.0 * rand()),
+                _ => DVec3::new(0.3, -0.2, 1.0) + DVec3::new(rand() - 0.5, rand() - 0.5, rand() - 0.5),
+            };
+            let casters = Casters::of(&tris, &planes, eye, apex, |_, _| true);
+            let Casters::Pyramids(ref pyramids) = casters else {
+                panic!("{casters:?}")
+            };
+            assert_eq!(pyramids.len(), 8, "floor, six faces, card");
+            if bvh.any_hit(eye, (apex - eye).normalize(), 0.0, (apex - eye).length()) && trial % 3 == 2 {
+                // An eye in the box or its shadow: every ray from it may be shadowed.
+                assert!(casters.may_shadow(eye, DVec3::Z, 1e-3));
+                continue;
+            }
+            let target = DVec3::new(6.0 * rand() - 3.0, 6.0 * rand() - 3.0, 6.0 * rand() - 0.5);
+            let dir = (target - eye).normalize();
+            let t_end = bvh.closest_hit(eye, dir, 0.0, f64::INFINITY).map_or(f64::INFINITY, |h| h.t);
+            let reach = t_end.min(40.0);
+            let shadowed = (0..4000).any(|i| {
+                let p = eye + dir * reach * (i as f64 + 0.5) / 4000.0;
+                let to = apex - p;
+                bvh.any_hit(p, to.normalize(), 1e-9, to.length() * (1.0 - 1e-9))
+            });
+            let may = casters.may_shadow(eye, dir, t_end);
+            if shadowed {
+                assert!(may, "trial {trial}: eye {eye}, dir {dir}, end {t_end}: shadowed but not flagged");
+                counts[0] += 1;
+            } else {
+                counts[if may { 2 } else { 1 }] += 1;
+            }
+        }
+        assert!(counts[0] > 300 && counts[1] > 300, "{counts:?}");
+        assert!(counts[1] > counts[2], "{counts:?}");
     }
 
     #[test]
