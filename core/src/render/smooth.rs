@@ -314,7 +314,8 @@ impl ShadowPyramid {
     fn reached_by(&self, eye: DVec3, dir: DVec3, t_end: f64, tol: f64) -> bool {
         let (mut t0, mut t1) = (0.0f64, t_end);
         let (bn, bo) = self.beyond;
-        for (n, offset, margin) in self.sides.iter().map(|&(n, o)| (n, o, 0.0)).chain(std::iter::once((bn, bo, -tol))) {
+        // The plane first: most rays that miss a pyramid stay on its near side.
+        for (n, offset, margin) in std::iter::once((bn, bo, -tol)).chain(self.sides.iter().map(|&(n, o)| (n, o, 0.0))) {
             // Inside: n·eye − offset + margin + t·(n·dir) ≥ 0.
             let a = n.dot(eye) - offset + margin;
             let b = n.dot(dir);
