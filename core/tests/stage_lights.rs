@@ -431,7 +431,10 @@ fn cube(c: DVec3, h: DVec3) -> Vec<[DVec3; 3]> {
             if i & 4 == 0 { -h.z } else { h.z },
         )
     };
-    common::CUBE_TRIANGLES.iter().map(|t| [p(t[0]), p(t[1]), p(t[2])]).collect()
+    tyndall_core::geometry::CUBE_TRIANGLES
+        .iter()
+        .map(|t| [p(t[0] as usize), p(t[1] as usize), p(t[2] as usize)])
+        .collect()
 }
 
 struct Case {

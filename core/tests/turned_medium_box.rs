@@ -43,7 +43,7 @@ fn scene(turn: Option<(DQuat, DVec3)>) -> Value {
             ])
         })
         .collect();
-    let cube_tris = common::CUBE_TRIANGLES;
+    let cube_tris = tyndall_core::geometry::CUBE_TRIANGLES;
     let (box_min, box_max) = ([-2.5, -1.8, 0.0], [2.5, 1.8, 3.6]);
     let mut bounds = json!({"min": box_min, "max": box_max});
     if let Some((q, _)) = turn {

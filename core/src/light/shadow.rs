@@ -993,34 +993,7 @@ fn wedge_normal(p: &Projector, a: DVec3, b: DVec3) -> DVec3 {
 mod tests {
     use super::*;
     use crate::geometry::bvh::Triangle;
-
-    fn cube(c: DVec3, h: f64) -> (Vec<DVec3>, Vec<[u32; 3]>) {
-        let mut p = Vec::new();
-        for i in 0..8 {
-            p.push(
-                c + DVec3::new(
-                    if i & 1 == 0 { -h } else { h },
-                    if i & 2 == 0 { -h } else { h },
-                    if i & 4 == 0 { -h } else { h },
-                ),
-            );
-        }
-        let t = vec![
-            [0, 2, 1],
-            [1, 2, 3],
-            [4, 5, 6],
-            [5, 7, 6],
-            [0, 1, 4],
-            [1, 5, 4],
-            [2, 6, 3],
-            [3, 6, 7],
-            [0, 4, 2],
-            [2, 4, 6],
-            [1, 3, 5],
-            [3, 7, 5],
-        ];
-        (p, t)
-    }
+    use crate::geometry::cube;
 
     /// The visibility grid never contradicts a shadow ray, and decides most points.
     /// A BVH over every triangle of `meshes`.

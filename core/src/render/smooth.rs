@@ -600,23 +600,8 @@ mod tests {
             z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
             ((z ^ (z >> 31)) >> 11) as f64 / (1u64 << 53) as f64
         };
-        let cube: Vec<[f64; 3]> = (0..8)
-            .map(|i| [(i & 1) as f64 - 0.5, ((i >> 1) & 1) as f64 - 0.5, ((i >> 2) & 1) as f64 - 0.5])
-            .collect();
-        let cube_tris = vec![
-            [0, 2, 1],
-            [1, 2, 3],
-            [4, 5, 6],
-            [5, 7, 6],
-            [0, 1, 4],
-            [1, 5, 4],
-            [2, 6, 3],
-            [3, 6, 7],
-            [0, 4, 2],
-            [2, 4, 6],
-            [1, 3, 5],
-            [3, 7, 5],
-        ];
+        let (corners, cube_tris) = crate::geometry::cube(DVec3::ZERO, 0.5);
+        let cube: Vec<[f64; 3]> = corners.iter().map(|c| c.to_array()).collect();
         let mesh = |name: &str, positions: Vec<[f64; 3]>, triangles: Vec<[u32; 3]>, transform: crate::scene::Transform| Mesh {
             name: name.into(),
             positions,

@@ -536,23 +536,6 @@ impl HeightFogModel {
 }
 
 /// `[a,b,c]` with round-trip formatting.
-/// The 12 outward-facing triangles of a box whose 8 corners are numbered by
-/// bits (bit 0: +x, bit 1: +y, bit 2: +z).
-pub const CUBE_TRIANGLES: [[usize; 3]; 12] = [
-    [0, 2, 1],
-    [1, 2, 3],
-    [4, 5, 6],
-    [5, 7, 6],
-    [0, 1, 4],
-    [1, 5, 4],
-    [2, 6, 3],
-    [3, 6, 7],
-    [0, 4, 2],
-    [2, 4, 6],
-    [1, 3, 5],
-    [3, 7, 5],
-];
-
 pub fn arr(v: [f64; 3]) -> String {
     format!("[{:?},{:?},{:?}]", v[0], v[1], v[2])
 }
