@@ -309,6 +309,66 @@ impl<const C: usize> HeightFieldLayer<C> {
         if below { &self.lower } else { &self.upper }
     }
 
+    /// Steepest possible slope of the boundary, `Σ|A|·|k|` (a bound on `|∇h|`).
+    pub fn max_slope(&self) -> f64 {
+        self.waves.iter().map(|w| w.amplitude.abs() * w.kx.hypot(w.ky)).sum()
+    }
+
+    /// Whether the straight path from some point of `o + t·d`, `t ∈ [a, b]`,
+    /// to the point `light` may touch the boundary tangentially. Where it
+    /// does, the path's optical depth has a square-root kink in `t` (a crest
+    /// the path starts or stops cutting), which no breakpoint marks. A
+    /// tangent path is no steeper than the boundary there,
+    /// `|v_z| ≤ |v_h|·|∇h| ≤ |v_h|·max_slope`, and touches it between
+    /// [`Self::bottom`] and [`Self::top`]: with the light above the top, only
+    /// points at or below the top can have such a path, and their paths
+    /// rise at least `(z_light − top)/ρ`, `ρ` their horizontal distance from
+    /// the light, which is largest at an end of the clipped segment (likewise
+    /// below the bottom). A light between the two may always graze.
+    pub fn light_path_may_graze(&self, o: DVec3, d: DVec3, a: f64, b: f64, light: DVec3) -> bool {
+        if b.partial_cmp(&a) != Some(std::cmp::Ordering::Greater) {
+            return false;
+        }
+        let (top, bottom) = (self.top(), self.bottom());
+        // The part of the segment on the layer's side of the light, and the
+        // least height between the light and it.
+        let (limit, gap, keep_below) = if light.z > top {
+            (top, light.z - top, true)
+        } else if light.z < bottom {
+            (bottom, bottom - light.z, false)
+        } else {
+            return true;
+        };
+        let (mut lo, mut hi) = (a, b);
+        let inside = |z: f64| if keep_below { z <= limit } else { z >= limit };
+        if d.z == 0.0 {
+            if !inside(o.z + d.z * a) {
+                return false;
+            }
+        } else {
+            let t = (limit - o.z) / d.z;
+            // Below the top while t ≤ t_limit for a rising ray (keep_below), and so on.
+            if (d.z > 0.0) == keep_below {
+                hi = hi.min(t);
+            } else {
+                lo = lo.max(t);
+            }
+        }
+        if hi.partial_cmp(&lo) != Some(std::cmp::Ordering::Greater) {
+            return false;
+        }
+        if !hi.is_finite() {
+            return true;
+        }
+        let rho = |t: f64| {
+            let x = o + d * t;
+            (x.x - light.x).hypot(x.y - light.y)
+        };
+        let rho_max = rho(lo).max(rho(hi));
+        // (NaN: may.)
+        gap.partial_cmp(&(rho_max * self.max_slope() * (1.0 + 1e-9))) != Some(std::cmp::Ordering::Greater)
+    }
+
     /// Whether the upper side has any extinction.
     pub fn upper_is_vacuum(&self) -> bool {
         self.upper.extinction.iter().all(|v| *v == 0.0)
@@ -512,12 +572,19 @@ impl<const C: usize> HeightFieldLayer<C> {
 
     /// Optical depth of the straight segment `a → b` (no caching).
     pub fn optical_depth_between(&self, a: DVec3, b: DVec3) -> [f64; C] {
+        self.optical_depth_and_pieces_between(a, b).0
+    }
+
+    /// [`Self::optical_depth_between`] and the number of pieces of the
+    /// segment on alternating sides of the boundary (1 + its crossings).
+    pub fn optical_depth_and_pieces_between(&self, a: DVec3, b: DVec3) -> ([f64; C], usize) {
         let v = b - a;
         let len = v.length();
         if len.is_nan() || len <= 0.0 {
-            return [0.0; C];
+            return ([0.0; C], 0);
         }
-        self.depth_of(&self.pieces(a, v / len, 0.0, len), len)
+        let pieces = self.pieces(a, v / len, 0.0, len);
+        (self.depth_of(&pieces, len), pieces.len())
     }
 
     /// Optical depth of the sun path from `p`, clipped to `z ≤ z_top`.

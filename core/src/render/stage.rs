@@ -72,7 +72,7 @@ use crate::light::window::WindowSource;
 use crate::light::{PointSource, ray_cone_intervals, ray_elliptic_cone_intervals};
 use crate::medium::homogeneous::MediumBox;
 use crate::medium::{LightPath, PreparedMedium, ViewRay};
-use crate::numeric::{integrate_adaptive, integrate_adaptive_nested, integrate_adaptive_nested_from_g3};
+use crate::numeric::{integrate_adaptive, integrate_adaptive_cut_at_changes, integrate_adaptive_nested, integrate_adaptive_nested_from_g3};
 use glam::DVec3;
 use rayon::prelude::*;
 use std::f64::consts::FRAC_PI_2;
@@ -512,6 +512,27 @@ fn total_depth<const C: usize>(media: &[PreparedMedium<C>], f: impl Fn(&Prepared
     t
 }
 
+/// Optical depth of the segment `a → b` through `media`, and a signature
+/// of how it crosses the wavy layers' boundaries (their numbers of pieces):
+/// where the signature changes as `a` moves, the depth has a kink.
+fn depth_and_crossings<const C: usize>(media: &[PreparedMedium<C>], a: DVec3, b: DVec3) -> ([f64; C], u64) {
+    let mut depth = [0.0; C];
+    let mut signature = 0u64;
+    for m in media {
+        let d = if let PreparedMedium::HeightFieldLayer(hf) = m {
+            let (d, pieces) = hf.optical_depth_and_pieces_between(a, b);
+            signature = signature.wrapping_mul(0x100_0000_01b3).wrapping_add(pieces as u64 + 1);
+            d
+        } else {
+            m.optical_depth_between(a, b)
+        };
+        for c in 0..C {
+            depth[c] += d[c];
+        }
+    }
+    (depth, signature)
+}
+
 /// `Σ σ_s p(μ) · T_view · T_light` at `x` (each factor per channel), with
 /// 0·∞ → 0 where a density overflows but the transmittance underflows.
 #[inline]
@@ -874,24 +895,26 @@ impl<const C: usize> StageLights<C> {
             }
         }
         let to_u = |t: f64| -> f64 { if t.is_finite() { ((t - tc) / h).atan() } else { FRAC_PI_2 } };
-        let integrand = |u: f64| -> [f64; C] {
+        // The integrand, and how the light path crosses the wavy layers
+        // (see `depth_and_crossings`).
+        let integrand_and_crossings = |u: f64| -> ([f64; C], u64) {
             let t = tc + h * u.tan();
             let x = o + d * t;
             let v = x - l.position;
             let r = v.length();
             if r.is_nan() || r <= 0.0 || !t.is_finite() {
-                return [0.0; C];
+                return ([0.0; C], 0);
             }
             let w = v / r;
             let f = l.factor(w);
             if f == 0.0 {
-                return [0.0; C];
+                return ([0.0; C], 0);
             }
             let mu = -d.dot(w);
-            let light_depth = if p.casts_shadows {
-                total_depth(media, |m| m.optical_depth_between(x, l.position))
+            let (light_depth, crossings) = if p.casts_shadows {
+                depth_and_crossings(media, x, l.position)
             } else {
-                [0.0; C]
+                ([0.0; C], 0)
             };
             let m = medium_factor(media, ray, t, x, mu, light_depth);
             let k = f / h;
@@ -899,8 +922,9 @@ impl<const C: usize> StageLights<C> {
             for c in 0..C {
                 val[c] = m[c] * l.intensity[c] * k;
             }
-            val
+            (val, crossings)
         };
+        let integrand = |u: f64| -> [f64; C] { integrand_and_crossings(u).0 };
         // Homogeneous media: the same integrand from the geometry of the
         // substitution. With n̂ the unit vector from the light to the closest
         // point, x − x_L = h·(n̂ + d·tan u), so r = h/cos u,
@@ -1147,12 +1171,23 @@ impl<const C: usize> StageLights<C> {
             // (A box that does not hold the light: the light path's kinks
             // in it are cuts, see `light_path_kinks`.)
             let smooth = fast && l.smooth_between_kinks();
+            // Where the light path may graze a wavy layer's crests, its
+            // depth has kinks that no cut marks: those windows are cut where
+            // the path's crossings of the boundary change. (A spot 2 mm above
+            // the crests, eyes 20 m away: 1.5359e-113 ± 1.4e-122 at tolerance
+            // 1e-9 against 1.5354e-113 before.)
+            let grazing = p.casts_shadows
+                && media
+                    .iter()
+                    .any(|m| matches!(m, PreparedMedium::HeightFieldLayer(hf) if hf.light_path_may_graze(o, d, a, b, l.position)));
             for wdw in bounds.windows(2) {
                 if wdw[1] <= wdw[0] {
                     continue;
                 }
                 let r = if fast {
                     integrate_window(plain_integrand, wdw[0], wdw[1], tolerance, smooth)
+                } else if grazing {
+                    integrate_adaptive_cut_at_changes(integrand_and_crossings, wdw[0], wdw[1], 1e-300, tolerance, 400)
                 } else {
                     integrate_window(integrand, wdw[0], wdw[1], tolerance, false)
                 };
