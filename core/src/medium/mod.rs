@@ -250,11 +250,10 @@ impl<const C: usize> PreparedMedium<C> {
     /// not hold a point light where the path passes its corners, an
     /// ellipsoid where the path turns tangent to it. A fog layer's planes
     /// give kinks only where `x(t)` crosses them (the view ray's own
-    /// breakpoints). A height-field layer's path can graze its waves; that
-    /// is not cut. A probe of spots over one, against its own render at
-    /// tolerance 1e-10, found every estimate honest, but under a spot 2 mm
-    /// above the crests, seen from 20 m, the windows' nested rule steps over
-    /// such a kink (docs/benchmarks.md, twenty-ninth session): open.
+    /// breakpoints). A height-field layer's path can graze its waves; those
+    /// kinks are not listed here: where a path may graze, the stage
+    /// integral cuts its windows where the path's crossings of the boundary
+    /// change (`integrate_adaptive_cut_at_changes`).
     pub fn light_path_kinks(&self, ray: &ViewRay, light: &LightPath<'_>, out: &mut Vec<f64>) {
         match (self, light) {
             (PreparedMedium::Homogeneous(m), LightPath::Point(l)) => {
