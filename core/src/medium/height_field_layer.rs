@@ -342,7 +342,7 @@ impl<const C: usize> HeightFieldLayer<C> {
         let (mut lo, mut hi) = (a, b);
         let inside = |z: f64| if keep_below { z <= limit } else { z >= limit };
         if d.z == 0.0 {
-            if !inside(o.z + d.z * a) {
+            if !inside(o.z) {
                 return false;
             }
         } else {

@@ -245,6 +245,14 @@ impl<const C: usize> PreparedMedium<C> {
         }
     }
 
+    /// Whether the path from some point of `o + t·d`, `t ∈ [a, b]`, to the
+    /// point light at `light` may graze the medium's boundary where no
+    /// [`Self::light_path_kinks`] marks it: a height-field layer's crests
+    /// ([`height_field_layer::HeightFieldLayer::light_path_may_graze`]).
+    pub fn light_path_may_graze(&self, o: DVec3, d: DVec3, a: f64, b: f64, light: DVec3) -> bool {
+        matches!(self, PreparedMedium::HeightFieldLayer(m) if m.light_path_may_graze(o, d, a, b, light))
+    }
+
     /// Appends the parameters where the optical depth of the light path from
     /// `x(t)` on `ray` kinks as `t` moves (see [`LightPath`]): a box that does
     /// not hold a point light where the path passes its corners, an

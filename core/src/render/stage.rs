@@ -1176,10 +1176,7 @@ impl<const C: usize> StageLights<C> {
             // the path's crossings of the boundary change. (A spot 2 mm above
             // the crests, eyes 20 m away: 1.5359e-113 ± 1.4e-122 at tolerance
             // 1e-9 against 1.5354e-113 before.)
-            let grazing = p.casts_shadows
-                && media
-                    .iter()
-                    .any(|m| matches!(m, PreparedMedium::HeightFieldLayer(hf) if hf.light_path_may_graze(o, d, a, b, l.position)));
+            let grazing = p.casts_shadows && media.iter().any(|m| m.light_path_may_graze(o, d, a, b, l.position));
             for wdw in bounds.windows(2) {
                 if wdw[1] <= wdw[0] {
                     continue;
@@ -1230,7 +1227,7 @@ impl<const C: usize> StageLights<C> {
                 } else {
                     (8.0 * f64::EPSILON * (scale + t_end.abs())).min(b - a)
                 };
-                // And the end's rounding in u (below).
+                // And the end's rounding in u (`u_rounding`, above).
                 let delta = delta + u_rounding(t_end).min(b - a);
                 let t_in = t_end + inward * 0.5 * delta;
                 let f_u = if plain.as_ref().is_some_and(|p| a >= p.lo && b <= p.hi) {
