@@ -86,9 +86,10 @@ def _inscatter_and_error(name: str, tolerance: float) -> tuple[np.ndarray, np.nd
     return layers["inscatter"].astype(np.float64), layers["error"].astype(np.float64)
 
 
+@pytest.mark.parametrize("tolerance", [0.1, 0.3])
 @pytest.mark.parametrize("name", ["narrow_beam_5deg", "spot_box_occluder", "two_coloured_spots"])
-def test_loose_tolerance_error_layer_bounds_a_tight_render(name: str) -> None:
-    """At tolerance 0.1 the error layer bounds the distance to a render at 1e-3
+def test_loose_tolerance_error_layer_bounds_a_tight_render(name: str, tolerance: float) -> None:
+    """At tolerances 0.1 and 0.3 the error layer bounds the distance to a render at 1e-3
     (plus that render's own estimate) in ≥ 99 % of pixels (issue 3's criterion,
     with Tyndall itself as the independent reference, free of Monte Carlo noise).
     Pixels next to a beam's edge, where the centre sample stands, used to be
@@ -101,8 +102,12 @@ def test_loose_tolerance_error_layer_bounds_a_tight_render(name: str) -> None:
     is charged its worst case (box occluder 48 → 4); and every pixel whose
     window holds a point light's image gets the filter integral (the last 4:
     a sliver of the cone at its apex that no centre sample within reach saw,
-    errors of 5.2e-4 and 4e-8 against estimates of 0)."""
-    loose, loose_err = _inscatter_and_error(name, 0.1)
+    errors of 5.2e-4 and 4e-8 against estimates of 0).
+    At 0.3 the box's shadow edge, slanted further down, crossed one pixel's
+    centre part-way: one third difference was small, and the pixel was wrong
+    by 3.3e-3 against an estimate of 2.3e-3; the step term now also charges
+    each side's rise (render::step_beside_centre)."""
+    loose, loose_err = _inscatter_and_error(name, tolerance)
     tight, tight_err = _inscatter_and_error(name, 1e-3)
     deviation = np.abs(loose - tight).max(-1)
     bound = (loose_err + tight_err).max(-1) * (1.0 + 1e-6) + 2.0**-23 * tight.max(-1)
