@@ -1888,8 +1888,23 @@ fn render_channels<const C: usize, const K: usize>(
         .collect();
 
     // Images of point lights: there the in-scatter has an integrable 1/r
-    // peak, which the filter's lattice resolves with cells down to 1/2048 px.
+    // peak, which the filter integrates in polar coordinates about the image
+    // (or, where it cannot, with lattice cells down to 1/2048 px).
     let light_images: Vec<(f64, f64)> = stage_lights.points.iter().filter_map(|p| cam.project(p.light.position)).collect();
+    // The same, with the image directions of the lines through them along
+    // which the in-scatter's peak has features (its cones' silhouettes),
+    // for the pixel filter's polar rule.
+    let polar_images: Vec<filter::LightImage> = stage_lights
+        .points
+        .iter()
+        .filter_map(|p| {
+            let at = cam.project(p.light.position)?;
+            Some(filter::LightImage {
+                at,
+                cuts: light_image_cuts(&cam, &p.light, at),
+            })
+        })
+        .collect();
     // Pixels may be interpolated ([`smooth`]) only with unlit tiles on
     // (in-scatter layers only, perspective, stage lights only).
     let smooth_on = want_topology && unlit_grid.is_some();
@@ -2765,6 +2780,7 @@ fn render_channels<const C: usize, const K: usize>(
             tolerance,
             window_scale: &window_scale,
             light_images: &light_images,
+            polar_images: &polar_images,
             cancel,
             progress: &filter_progress,
         };
@@ -2899,9 +2915,11 @@ fn render_channels<const C: usize, const K: usize>(
         report.plan.computed(
             format!("pixel filter integral on {} pixels (silhouettes, sharp medium boundaries)", filtered.len()),
             format!(
-                "Blackman-Harris, filter size {:.2} px (Blender's; window ±{:.2} px as Cycles doubles it), bilinear interpolation integrated exactly against the window, on one adaptive lattice shared by all windows: ½ px cells split while not flat to the tolerance, down to 1/32 px (1/2048 px at a point light's image), until each pixel's estimate settles: {} view rays, {} cells",
+                "Blackman-Harris, filter size {:.2} px (Blender's; window ±{:.2} px as Cycles doubles it), bilinear interpolation integrated exactly against the window, on one adaptive lattice shared by all windows: ½ px cells split while not flat to the tolerance, down to 1/32 px (1/2048 px at a point light's image where the polar rule does not apply), until each pixel's estimate settles; {} squares of 1 px around point lights' images in polar coordinates about the image (Gauss–Kronrod 5 × 5 rectangles in angle and radius, cut at the light's cone silhouettes, bisected until each pixel is within ¼ of its tolerance; {} of the view rays): {} view rays, {} cells",
                 filter.radius(),
                 filter.radius(),
+                lattice.polar_squares,
+                lattice.polar_samples,
                 edge.samples,
                 lattice.cells
             ),
@@ -3095,6 +3113,36 @@ fn second_order_filter_term(img: &[[f32; 3]], w: usize, i: usize, half_var: f64)
         let lap = at(i - 1, c) + at(i + 1, c) + at(i - w, c) + at(i + w, c) - 4.0 * at(i, c);
         (at(i, c) + half_var * lap) as f32
     })
+}
+
+/// Image angles (radians, from +x towards +y, which points down) of the
+/// lines through a point light's image `at` along which its in-scatter's
+/// peak has features: the silhouettes of the cones where its distribution
+/// has kinks ([`crate::light::PointSource::kinks`]), seen from the camera.
+/// A cone's silhouette generators are lines through the light, so their
+/// images are lines through `at`; the half along the lit nappe is listed.
+fn light_image_cuts<const C: usize>(cam: &CameraRays, light: &crate::light::PointSource<C>, at: (f64, f64)) -> Vec<f64> {
+    let mut cuts = Vec::new();
+    let reach = (cam.position - light.position).length();
+    for &cos_half in light.kinks().as_slice() {
+        let Some(generators) = filter::cone_silhouette_generators(light.position, light.frame.axis, cos_half, cam.position) else {
+            continue;
+        };
+        for g in generators {
+            // The image of a line is a line: any point of it in front of the
+            // camera gives its direction.
+            for sign in [1.0, -1.0] {
+                if let Some((x, y)) = cam.project(light.position + sign * 1e-3 * reach * g) {
+                    let angle = (y - at.1).atan2(x - at.0);
+                    if angle.is_finite() {
+                        cuts.push(if sign > 0.0 { angle } else { angle + std::f64::consts::PI });
+                    }
+                    break;
+                }
+            }
+        }
+    }
+    cuts
 }
 
 /// A centre sample as stored in the images: (L, T, surface id).
