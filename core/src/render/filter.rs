@@ -1867,25 +1867,48 @@ mod adaptive_tests {
         s
     }
 
+    /// Composite 8-point Gauss–Legendre (the module's `GL8`) on `panels`
+    /// equal panels of [−1, 1].
+    fn composite_gl8(panels: usize) -> Vec<(f64, f64)> {
+        (0..panels)
+            .flat_map(|k| {
+                GL8.iter().map(move |&(z, g)| {
+                    let (lo, hi) = (k as f64 / panels as f64, (k + 1) as f64 / panels as f64);
+                    (2.0 * (lo + 0.5 * (hi - lo) * (z + 1.0)) - 1.0, g / panels as f64)
+                })
+            })
+            .collect()
+    }
+
     /// Brute force for a window holding the singular point `(px, py)` of
     /// `f = a/ρ + b` (ρ the distance to it): polar coordinates about the
     /// point, where the Jacobian ρ cancels the peak, Gauss–Legendre in ρ and
     /// in θ, with θ split at the window's corners (where ρ_max(θ) has kinks).
-    fn brute_polar(filter: &PixelFilter, (px, py): (f64, f64), a: f64, b: f64, cx: f64, cy: f64) -> f64 {
+    fn brute_polar(filter: &PixelFilter, light: (f64, f64), a: f64, b: f64, cx: f64, cy: f64) -> f64 {
+        brute_polar_profile(filter, light, &|_| a, b, (16, &composite_gl8(8)), cx, cy)
+    }
+
+    /// Brute force of a window holding the singular point of `f = A(θ)/ρ`:
+    /// θ in 1024 parts of each piece, 8-point Gauss–Legendre in each.
+    fn brute_wedge(filter: &PixelFilter, light: (f64, f64), a: &dyn Fn(f64) -> f64, cx: f64, cy: f64) -> f64 {
+        brute_polar_profile(filter, light, a, 0.0, (1024, &GL8), cx, cy)
+    }
+
+    /// `f = a(θ)/ρ + b` over the window of the pixel centred at (cx, cy),
+    /// polar about `(px, py)`: each θ piece between the window's corners in
+    /// `theta.0` equal parts, each with the nodes `theta.1` on [−1, 1]; ρ
+    /// by [`composite_gl8`]`(8)`.
+    fn brute_polar_profile(
+        filter: &PixelFilter,
+        (px, py): (f64, f64),
+        a: &dyn Fn(f64) -> f64,
+        b: f64,
+        theta: (usize, &[(f64, f64)]),
+        cx: f64,
+        cy: f64,
+    ) -> f64 {
         let r = filter.radius();
-        // Composite 8-point Gauss–Legendre (the module's `GL8`) on 8 panels, in ρ
-        // and in each of 16 parts of every θ piece.
-        let composite = |panels: usize| -> Vec<(f64, f64)> {
-            (0..panels)
-                .flat_map(|k| {
-                    GL8.iter().map(move |&(z, g)| {
-                        let (lo, hi) = (k as f64 / panels as f64, (k + 1) as f64 / panels as f64);
-                        (2.0 * (lo + 0.5 * (hi - lo) * (z + 1.0)) - 1.0, g / panels as f64)
-                    })
-                })
-                .collect()
-        };
-        let nodes = composite(8);
+        let rho_nodes = composite_gl8(8);
         let (x0, x1, y0, y1) = (cx - r, cx + r, cy - r, cy + r);
         let mut cuts: Vec<f64> = [(x0, y0), (x1, y0), (x0, y1), (x1, y1)]
             .iter()
@@ -1895,32 +1918,33 @@ mod adaptive_tests {
         cuts.push(2.0 * PI);
         cuts.sort_by(f64::total_cmp);
         let norm = (0.35875 * 2.0 * r).powi(2);
+        let (parts, nodes) = theta;
+        // Distance from the point to the window's boundary along a direction.
+        let reach = |d: f64, lo: f64, hi: f64| {
+            if d > 0.0 {
+                hi / d
+            } else if d < 0.0 {
+                lo / d
+            } else {
+                f64::INFINITY
+            }
+        };
         let mut total = 0.0;
         for seg in cuts.windows(2) {
-            for sub in 0..16 {
+            for sub in 0..parts {
                 let (t0, t1) = (
-                    seg[0] + (seg[1] - seg[0]) * sub as f64 / 16.0,
-                    seg[0] + (seg[1] - seg[0]) * (sub + 1) as f64 / 16.0,
+                    seg[0] + (seg[1] - seg[0]) * sub as f64 / parts as f64,
+                    seg[0] + (seg[1] - seg[0]) * (sub + 1) as f64 / parts as f64,
                 );
-                for &(zt, wt) in &nodes {
+                for &(zt, wt) in nodes {
                     let th = 0.5 * (t0 + t1) + 0.5 * (t1 - t0) * zt;
                     let (c, s) = (th.cos(), th.sin());
-                    // Distance from the point to the window's boundary along θ.
-                    let reach = |d: f64, lo: f64, hi: f64| {
-                        if d > 0.0 {
-                            hi / d
-                        } else if d < 0.0 {
-                            lo / d
-                        } else {
-                            f64::INFINITY
-                        }
-                    };
-                    let (tx, ty) = (reach(c, x0 - px, x1 - px), reach(s, y0 - py, y1 - py));
-                    let rmax = tx.min(ty);
-                    for &(zr, wr) in &nodes {
+                    let rmax = reach(c, x0 - px, x1 - px).min(reach(s, y0 - py, y1 - py));
+                    let at = a(th);
+                    for &(zr, wr) in &rho_nodes {
                         let rho = 0.5 * rmax * (zr + 1.0);
                         let (x, y) = (px + rho * c, py + rho * s);
-                        let g = (a + b * rho) * filter.weight(x - cx) * filter.weight(y - cy);
+                        let g = (at + b * rho) * filter.weight(x - cx) * filter.weight(y - cy);
                         total += g * 0.5 * rmax * wr * 0.5 * (t1 - t0) * wt;
                     }
                 }
@@ -1929,38 +1953,56 @@ mod adaptive_tests {
         total / norm
     }
 
+    /// Checks every filtered pixel of a toy image with a light at `light`
+    /// against `exact(cx, cy, holds)` (`holds`: the window holds the image,
+    /// its edge included when `closed`): the number within their estimates,
+    /// and the worst error over `scale(index, exact)`.
+    fn honest_at_light(
+        out: &[FilteredPixel<Toy>],
+        light: (f64, f64),
+        exact: &dyn Fn(f64, f64, bool) -> f64,
+        scale: &dyn Fn(usize, f64) -> f64,
+        closed: bool,
+    ) -> (usize, f64) {
+        let (w, r) = (TOY_SIZE.0, PixelFilter::default().radius());
+        let (mut honest, mut worst) = (0, 0.0f64);
+        for p in out {
+            let (cx, cy) = ((p.index % w) as f64 + 0.5, (p.index / w) as f64 + 0.5);
+            let (dx, dy) = ((light.0 - cx).abs(), (light.1 - cy).abs());
+            let holds = if closed { dx <= r && dy <= r } else { dx < r && dy < r };
+            let want = exact(cx, cy, holds);
+            let err = (p.value.l[0] - want).abs();
+            worst = worst.max(err / scale(p.index, want));
+            if err <= p.error[0] + 1e-9 * scale(p.index, 0.0) {
+                honest += 1;
+            } else {
+                eprintln!(
+                    "  ({cx}, {cy}) holds {holds}: {} vs {want}: err {err:.3e} > estimate {:.3e}",
+                    p.value.l[0], p.error[0]
+                );
+            }
+        }
+        (honest, worst)
+    }
+
     #[test]
     fn adaptive_lattice_resolves_a_point_lights_image() {
         // f = a/ρ + b about a light's image: inside a pixel, and on a pixel
         // boundary (as the spot of the Cycles scene `spot_box_occluder`).
         let filter = PixelFilter::default();
-        let w = TOY_SIZE.0;
         for (light, tol) in [((5.37, 4.81), 1e-2), ((6.0, 4.2), 1e-2), ((5.37, 4.81), 1e-3)] {
             let (a, b) = (0.05, 0.1);
             let f = move |x: f64, y: f64| a / (x - light.0).hypot(y - light.1) + b;
             let scale_of = |i: usize| toy_window_max(&f, i);
             let (out, stats) = filter_toy(&f, tol, &[light]);
-            let mut honest = 0;
-            let mut worst = 0.0f64;
-            for p in &out {
-                let (cx, cy) = ((p.index % w) as f64 + 0.5, (p.index / w) as f64 + 0.5);
-                let holds = (light.0 - cx).abs() < filter.radius() && (light.1 - cy).abs() < filter.radius();
-                let exact = if holds {
+            let exact = |cx: f64, cy: f64, holds: bool| {
+                if holds {
                     brute_polar(&filter, light, a, b, cx, cy)
                 } else {
                     brute(&filter, &f, cx, cy, 512)
-                };
-                let err = (p.value.l[0] - exact).abs();
-                worst = worst.max(err / scale_of(p.index));
-                if err <= p.error[0] + 1e-9 * scale_of(p.index) {
-                    honest += 1;
-                } else {
-                    eprintln!(
-                        "  ({cx}, {cy}) holds {holds}: {} vs {exact}: err {err:.3e} > estimate {:.3e}",
-                        p.value.l[0], p.error[0]
-                    );
                 }
-            }
+            };
+            let (honest, worst) = honest_at_light(&out, light, &exact, &|i, _| scale_of(i), false);
             eprintln!(
                 "light at {light:?}, tol {tol:e}: honest {honest}/{}, worst rel {worst:.3e}, {} rays, {} cells",
                 out.len(),
@@ -1970,54 +2012,6 @@ mod adaptive_tests {
             assert_eq!(honest, out.len());
             assert!(worst <= tol, "worst {worst:e}");
         }
-    }
-
-    /// Brute force of a window holding the singular point of `f = A(θ)/ρ`
-    /// (`a(θ)` given): polar about the point, θ in 4096 panels of GL8, ρ in 8 panels.
-    fn brute_wedge(filter: &PixelFilter, (px, py): (f64, f64), a: &dyn Fn(f64) -> f64, cx: f64, cy: f64) -> f64 {
-        let r = filter.radius();
-        let (x0, x1, y0, y1) = (cx - r, cx + r, cy - r, cy + r);
-        let mut cuts: Vec<f64> = [(x0, y0), (x1, y0), (x0, y1), (x1, y1)]
-            .iter()
-            .map(|&(x, y)| (y - py).atan2(x - px).rem_euclid(2.0 * PI))
-            .collect();
-        cuts.push(0.0);
-        cuts.push(2.0 * PI);
-        cuts.sort_by(f64::total_cmp);
-        let norm = (0.35875 * 2.0 * r).powi(2);
-        let mut total = 0.0;
-        let np = 1024;
-        for seg in cuts.windows(2) {
-            for sub in 0..np {
-                let (t0, t1) = (
-                    seg[0] + (seg[1] - seg[0]) * sub as f64 / np as f64,
-                    seg[0] + (seg[1] - seg[0]) * (sub + 1) as f64 / np as f64,
-                );
-                for &(zt, wt) in &GL8 {
-                    let th = 0.5 * (t0 + t1) + 0.5 * (t1 - t0) * zt;
-                    let (c, s) = (th.cos(), th.sin());
-                    let reach = |d: f64, lo: f64, hi: f64| {
-                        if d > 0.0 {
-                            hi / d
-                        } else if d < 0.0 {
-                            lo / d
-                        } else {
-                            f64::INFINITY
-                        }
-                    };
-                    let rmax = reach(c, x0 - px, x1 - px).min(reach(s, y0 - py, y1 - py));
-                    let at = a(th);
-                    for k in 0..8 {
-                        for &(zr, wr) in &GL8 {
-                            let rho = rmax * (k as f64 + 0.5 * (zr + 1.0)) / 8.0;
-                            let (x, y) = (px + rho * c, py + rho * s);
-                            total += at * filter.weight(x - cx) * filter.weight(y - cy) * 0.5 * rmax / 8.0 * wr * 0.5 * (t1 - t0) * wt;
-                        }
-                    }
-                }
-            }
-        }
-        total / norm
     }
 
     /// A beam's apex at a light's image: `f = A(θ)/ρ`, `A` a smoothstep
@@ -2033,7 +2027,6 @@ mod adaptive_tests {
     #[test]
     fn polar_rule_resolves_a_beams_apex_at_the_lights_image() {
         let filter = PixelFilter::default();
-        let w = TOY_SIZE.0;
         let smooth = |e0: f64, e1: f64, x: f64| {
             let t = ((x - e0) / (e1 - e0)).clamp(0.0, 1.0);
             t * t * (3.0 - 2.0 * t)
@@ -2063,27 +2056,15 @@ mod adaptive_tests {
             let cuts = vec![axis + half, axis - half, axis + 0.85 * half, axis - 0.85 * half];
             let polar = [LightImage { at: light, cuts }];
             let (out, stats) = filter_toy_polar(&f, tol, &[light], &polar);
-            let (mut honest, mut worst) = (0, 0.0f64);
-            for p in &out {
-                let (cx, cy) = ((p.index % w) as f64 + 0.5, (p.index / w) as f64 + 0.5);
-                let holds = (light.0 - cx).abs() <= filter.radius() && (light.1 - cy).abs() <= filter.radius();
-                let exact = if holds {
+            let exact = |cx: f64, cy: f64, holds: bool| {
+                if holds {
                     brute_wedge(&filter, light, &a, cx, cy)
                 } else {
                     brute(&filter, &f, cx, cy, 512)
-                };
-                let err = (p.value.l[0] - exact).abs();
-                // The window's scale, or the pixel's own value where its centre samples all miss the wedge.
-                worst = worst.max(err / scale_of(p.index).max(exact));
-                if err <= p.error[0] + 1e-9 * scale_of(p.index) {
-                    honest += 1;
-                } else {
-                    eprintln!(
-                        "  ({cx}, {cy}) holds {holds}: {} vs {exact}: err {err:.3e} > estimate {:.3e}",
-                        p.value.l[0], p.error[0]
-                    );
                 }
-            }
+            };
+            // The window's scale, or the pixel's own value where its centre samples all miss the wedge.
+            let (honest, worst) = honest_at_light(&out, light, &exact, &|i, exact| scale_of(i).max(exact), true);
             eprintln!(
                 "wedge at {light:?}, axis {axis}, half-angle {half}, tolerance {tol:e}: honest {honest}/{}, worst {worst:.2e}, {} rays",
                 out.len(),

@@ -3484,6 +3484,19 @@ fn abs_rgb_weights() -> [[f64; SPECTRAL_SAMPLES]; 3] {
 mod tests {
     use super::*;
 
+    /// For a 1-D image `l`: the corrected centre sample's distance from the
+    /// window's integral (midpoint `nodes`), and the charge where the centre
+    /// sample stands (the larger of the neighbours' Laplacian terms and
+    /// `(½ − σ²/2)·step_beside_centre`).
+    fn error_and_charge(l: &dyn Fn(f64) -> f64, nodes: &[(f64, f64)], half_var: f64) -> (f64, f64) {
+        let window: f64 = nodes.iter().map(|(x, wgt)| wgt * l(*x)).sum();
+        let corrected = l(0.0) + half_var * (l(1.0) + l(-1.0) - 2.0 * l(0.0));
+        let lap = |c: f64| half_var * (l(c + 1.0) + l(c - 1.0) - 2.0 * l(c)).abs();
+        let near = lap(-1.0).max(lap(0.0)).max(lap(1.0));
+        let step = (0.5 - half_var) * step_beside_centre([l(-2.0), l(-1.0), l(0.0), l(1.0), l(2.0)]);
+        ((corrected - window).abs(), near.max(step))
+    }
+
     /// The charge where a centre sample stands, on a 1-D step of height 1 at
     /// every offset δ in ±2.6 px (5 201 offsets), for Blender's filter and two
     /// others: the corrected centre sample L(0) + σ²/2·(L(1) + L(−1) − 2L(0))
@@ -3497,19 +3510,9 @@ mod tests {
             let half_var = 0.5 * filter.variance();
             for k in 0..=5200 {
                 let delta = -2.6 + k as f64 * 1e-3;
-                let l = |x: f64| if x > delta { 1.0 } else { 0.0 };
-                let window: f64 = nodes.iter().map(|(x, wgt)| wgt * l(*x)).sum();
-                let corrected = l(0.0) + half_var * (l(1.0) + l(-1.0) - 2.0 * l(0.0));
-                let error = (corrected - window).abs();
-                let lap = |c: f64| half_var * (l(c + 1.0) + l(c - 1.0) - 2.0 * l(c)).abs();
-                let near = lap(-1.0).max(lap(0.0)).max(lap(1.0));
-                let step = (0.5 - half_var) * step_beside_centre([l(-2.0), l(-1.0), l(0.0), l(1.0), l(2.0)]);
+                let (error, charge) = error_and_charge(&|x: f64| if x > delta { 1.0 } else { 0.0 }, &nodes, half_var);
                 // 2e-4: the midpoint rule's own error on the window's integral at a step.
-                assert!(
-                    error <= near.max(step) + 2e-4,
-                    "width {width_px}, δ = {delta}: error {error} > {}",
-                    near.max(step)
-                );
+                assert!(error <= charge + 2e-4, "width {width_px}, δ = {delta}: error {error} > {charge}");
             }
             // Ramps from 0 to 1 over `rise` px, starting at every offset in
             // ±2.6 px (0.01 apart): the centre sample may catch the rise
@@ -3519,17 +3522,10 @@ mod tests {
             for rise in [0.05, 0.1, 0.3, 0.7, 1.0, 1.6, 2.4] {
                 for k in 0..=520 {
                     let start = -2.6 + k as f64 * 1e-2;
-                    let l = |x: f64| ((x - start) / rise).clamp(0.0, 1.0);
-                    let window: f64 = nodes.iter().map(|(x, wgt)| wgt * l(*x)).sum();
-                    let corrected = l(0.0) + half_var * (l(1.0) + l(-1.0) - 2.0 * l(0.0));
-                    let error = (corrected - window).abs();
-                    let lap = |c: f64| half_var * (l(c + 1.0) + l(c - 1.0) - 2.0 * l(c)).abs();
-                    let near = lap(-1.0).max(lap(0.0)).max(lap(1.0));
-                    let step = (0.5 - half_var) * step_beside_centre([l(-2.0), l(-1.0), l(0.0), l(1.0), l(2.0)]);
+                    let (error, charge) = error_and_charge(&|x: f64| ((x - start) / rise).clamp(0.0, 1.0), &nodes, half_var);
                     assert!(
-                        error <= near.max(step) + 2e-4,
-                        "width {width_px}, ramp {rise} px from {start}: error {error} > {}",
-                        near.max(step)
+                        error <= charge + 2e-4,
+                        "width {width_px}, ramp {rise} px from {start}: error {error} > {charge}"
                     );
                 }
             }
