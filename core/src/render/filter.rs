@@ -2037,6 +2037,8 @@ mod adaptive_tests {
             ((5.37, 4.81), 1.2, 0.35, 0.3, true),
             ((5.37, 4.81), 1.2, 0.35, 0.1, true),
             ((6.0, 4.69), std::f64::consts::FRAC_PI_2, 0.35, 0.3, true),
+            // On a pixel corner: four polar squares meet at the image.
+            ((6.0, 5.0), 2.5, 0.2, 0.1, true),
             ((5.43, 4.74), 0.3, 0.1, 0.3, true),
             ((5.43, 4.74), 0.3, 0.1, 0.03, true),
             ((5.43, 4.74), 0.3, 0.1, 1e-3, true),
