@@ -1890,10 +1890,9 @@ fn render_channels<const C: usize, const K: usize>(
     // Images of point lights: there the in-scatter has an integrable 1/r
     // peak, which the filter integrates in polar coordinates about the image
     // (or, where it cannot, with lattice cells down to 1/2048 px).
-    let light_images: Vec<(f64, f64)> = stage_lights.points.iter().filter_map(|p| cam.project(p.light.position)).collect();
-    // The same, with the image directions of the lines through them along
-    // which the in-scatter's peak has features (its cones' silhouettes),
-    // for the pixel filter's polar rule.
+    // With the image directions of the lines through them along which the
+    // in-scatter's peak has features (its cones' silhouettes), for the pixel
+    // filter's polar rule.
     let polar_images: Vec<filter::LightImage> = stage_lights
         .points
         .iter()
@@ -1905,6 +1904,7 @@ fn render_channels<const C: usize, const K: usize>(
             })
         })
         .collect();
+    let light_images: Vec<(f64, f64)> = polar_images.iter().map(|p| p.at).collect();
     // Pixels may be interpolated ([`smooth`]) only with unlit tiles on
     // (in-scatter layers only, perspective, stage lights only).
     let smooth_on = want_topology && unlit_grid.is_some();
