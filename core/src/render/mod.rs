@@ -1893,17 +1893,29 @@ fn render_channels<const C: usize, const K: usize>(
     // With the image directions of the lines through them along which the
     // in-scatter's peak has features (its cones' silhouettes), for the pixel
     // filter's polar rule.
-    let polar_images: Vec<filter::LightImage> = stage_lights
+    // With each image's light, as its beam's geometry in the image (no
+    // profile table) and the image direction of its axis: where the beam
+    // is narrower than the lattice's cells, the squares it crosses are
+    // integrated about the image too.
+    let (polar_images, image_beams): (Vec<filter::LightImage>, Vec<Option<ImageBeam>>) = stage_lights
         .points
         .iter()
         .filter_map(|p| {
             let at = cam.project(p.light.position)?;
-            Some(filter::LightImage {
+            let image = filter::LightImage {
                 at,
                 cuts: light_image_cuts(&cam, &p.light, at),
-            })
+            };
+            let beam = (p.light.cos_reach > 0.0)
+                .then(|| profile::BeamLight::new(&p.light, &cam, p.casts_shadows, false, tolerance))
+                .flatten()
+                .map(|geometry| ImageBeam {
+                    geometry,
+                    forward: image_direction(&cam, p.light.position, p.light.frame.axis, at),
+                });
+            Some((image, beam))
         })
-        .collect();
+        .unzip();
     let light_images: Vec<(f64, f64)> = polar_images.iter().map(|p| p.at).collect();
     // Pixels may be interpolated ([`smooth`]) only with unlit tiles on
     // (in-scatter layers only, perspective, stage lights only).
@@ -2773,6 +2785,35 @@ fn render_channels<const C: usize, const K: usize>(
                 cb(RenderStage::PixelFilter, first + done, first + total);
             }
         };
+        // Only near the light's image: farther out, the pixels a beam
+        // narrower than 2 px crosses are the profile filter's (it leaves
+        // those within LIGHT_IMAGE_MARGIN of a light's image to the
+        // lattice). On the 0.5° beam with its lamp in view (96×54), squares
+        // along the whole band took 146 polar squares and made the filter 7×
+        // slower; beyond this reach they lay past the beam's end on the
+        // floor, where the band goes on but no light does.
+        let reach = profile::LIGHT_IMAGE_MARGIN + filter.radius();
+        let beam_width = |n: usize, (x, y): (f64, f64)| {
+            let (ix, iy) = light_images[n];
+            if (x - ix).abs().max((y - iy).abs()) > reach {
+                return None;
+            }
+            let beam = image_beams[n].as_ref()?;
+            // The band |sin ψ| < sin(reach) is a double cone; a beam narrower
+            // than a hemisphere lies on its axis's side of the image (a
+            // half-plane), and a square wholly on the other side holds only
+            // the unlit nappe (a 5° beam: 6 of 14 squares, a quarter of
+            // their rays).
+            if let Some((fx, fy)) = beam.forward {
+                let behind = [(-0.5, -0.5), (0.5, -0.5), (-0.5, 0.5), (0.5, 0.5)]
+                    .iter()
+                    .all(|&(dx, dy)| (x + dx - ix) * fx + (y + dy - iy) * fy < 0.0);
+                if behind {
+                    return None;
+                }
+            }
+            beam.geometry.width_in_square([x, y], 0.5)
+        };
         let job = filter::AdaptiveFilterJob {
             filter,
             width: w,
@@ -2781,6 +2822,10 @@ fn render_channels<const C: usize, const K: usize>(
             window_scale: &window_scale,
             light_images: &light_images,
             polar_images: &polar_images,
+            beam_width: image_beams
+                .iter()
+                .any(Option::is_some)
+                .then_some(&beam_width as &filter::BeamWidth<'_>),
             cancel,
             progress: &filter_progress,
         };
@@ -2915,7 +2960,7 @@ fn render_channels<const C: usize, const K: usize>(
         report.plan.computed(
             format!("pixel filter integral on {} pixels (silhouettes, sharp medium boundaries)", filtered.len()),
             format!(
-                "Blackman-Harris, filter size {:.2} px (Blender's; window ±{:.2} px as Cycles doubles it), bilinear interpolation integrated exactly against the window, on one adaptive lattice shared by all windows: ½ px cells split while not flat to the tolerance, down to 1/32 px (1/2048 px at a point light's image where the polar rule does not apply), until each pixel's estimate settles; {} squares of 1 px around point lights' images in polar coordinates about the image (Gauss–Kronrod 5 × 5 rectangles in angle and radius, cut at the light's cone silhouettes, bisected until each pixel is within ¼ of its tolerance; {} of the view rays): {} view rays, {} cells",
+                "Blackman-Harris, filter size {:.2} px (Blender's; window ±{:.2} px as Cycles doubles it), bilinear interpolation integrated exactly against the window, on one adaptive lattice shared by all windows: ½ px cells split while not flat to the tolerance, down to 1/32 px (1/2048 px at a point light's image where the polar rule does not apply), until each pixel's estimate settles; {} squares of 1 px at point lights' images (and near them where a beam is narrower than the cells) in polar coordinates about the image (Gauss–Kronrod 5 × 5 rectangles in angle and radius, cut at the light's cone silhouettes, bisected until each pixel is within ¼ of its tolerance; {} of the view rays): {} view rays, {} cells",
                 filter.radius(),
                 filter.radius(),
                 lattice.polar_squares,
@@ -3121,6 +3166,30 @@ fn second_order_filter_term(img: &[[f32; 3]], w: usize, i: usize, half_var: f64)
 /// has kinks ([`crate::light::PointSource::kinks`]), seen from the camera.
 /// A cone's silhouette generators are lines through the light, so their
 /// images are lines through `at`; the half along the lit nappe is listed.
+/// A light's beam as the pixel filter's polar rule sees it
+/// ([`filter::AdaptiveFilterJob::beam_width`]).
+struct ImageBeam {
+    geometry: profile::BeamLight,
+    /// The unit image direction in which the light's axis leaves its image
+    /// (`None` where the axis is seen end-on).
+    forward: Option<(f64, f64)>,
+}
+
+/// The unit image direction, from `at` (the image of `origin`), in which
+/// the line from `origin` along `dir` leaves it: a point a little way along
+/// it (or back along it, reversed, where that one is behind the camera).
+fn image_direction(cam: &CameraRays, origin: glam::DVec3, dir: glam::DVec3, at: (f64, f64)) -> Option<(f64, f64)> {
+    let step = 1e-3 * (cam.position - origin).length();
+    for sign in [1.0, -1.0] {
+        if let Some((x, y)) = cam.project(origin + sign * step * dir) {
+            let (dx, dy) = (sign * (x - at.0), sign * (y - at.1));
+            let len = dx.hypot(dy);
+            return (len > 1e-9 && len.is_finite()).then(|| (dx / len, dy / len));
+        }
+    }
+    None
+}
+
 fn light_image_cuts<const C: usize>(cam: &CameraRays, light: &crate::light::PointSource<C>, at: (f64, f64)) -> Vec<f64> {
     let mut cuts = Vec::new();
     let reach = (cam.position - light.position).length();

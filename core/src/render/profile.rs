@@ -111,7 +111,7 @@ const KNOWN_FRACTION: f64 = 0.05;
 const MIN_BEAM_NODES: f64 = 8.0;
 /// Pixels within this many px of a light's image are left to the lattice
 /// (`G ∝ 1/h` is not smooth at the light).
-const LIGHT_IMAGE_MARGIN: f64 = 3.5;
+pub(crate) const LIGHT_IMAGE_MARGIN: f64 = 3.5;
 /// Tiles of candidate pixels share their nodes, px a side.
 const TILE: usize = 16;
 /// Profile table cells (uniform in `q = √(1 − sin ψ / sin ψ_max)`, dense at
@@ -450,6 +450,13 @@ impl BeamLight {
         let f = &self.image;
         let m = f.m0 + f.mx * c[0] + f.my * c[1];
         2.0 * self.sin_reach * m.length() / f.n_grad_norm
+    }
+
+    /// The beam's width across the image at `c`, px (NaN where it cannot
+    /// be told), where its band may reach the square `c ± half` px; `None`
+    /// where it misses it ([`super::filter::AdaptiveFilterJob::beam_width`]).
+    pub(crate) fn width_in_square(&self, c: [f64; 2], half: f64) -> Option<f64> {
+        self.band_may_touch(c, half).then(|| self.width_px_at(c))
     }
 
     /// Whether this light's beam, where narrower than [`THIN_BEAM_PX`],
