@@ -1398,15 +1398,19 @@ impl PolarPlan {
                 continue;
             }
             let centre = (x0 + 0.5, y0 + 0.5);
-            // Narrower than the lattice's cells there: the ½ px root cells,
-            // or nearer the image the graded mesh's, about 1/(AT_LIGHT_REACH
-            // + 1) of the distance. (A 40° beam, ≈ 0.7 px wide 1 px from its
-            // image, is resolved by the graded mesh; squares for it cost the
-            // box occluder 22 % at 96×54.)
+            // Narrower than the graded mesh's cells there, about
+            // 1/(AT_LIGHT_REACH + 1) of the distance to the image: a beam
+            // that widens more slowly than that stays thin for the lattice
+            // (a cap at ½ px, the root cells, left a toy wedge 0.54 px wide
+            // with a pixel 1.08× outside its estimate; one at 1 px, a
+            // wedge 1.1 px wide with one 2.3× outside). A beam that widens
+            // faster (a 40° one, ≈ 0.7 px wide 1 px from its image) is
+            // resolved by the graded mesh; squares for it cost the box
+            // occluder 22 % at 96×54.)
             let narrow = |n: usize| {
                 let (ix, iy) = images[n];
                 let distance = (centre.0 - ix).hypot(centre.1 - iy);
-                let cells = (distance / (AT_LIGHT_REACH + 1) as f64).min(ROOT_CELL as f64 / UNITS_PER_PX as f64);
+                let cells = distance / (AT_LIGHT_REACH + 1) as f64;
                 beam_width(n, centre).is_some_and(|w| w.is_nan() || w < cells)
             };
             let mut owners = (0..self.taken.len()).filter(|&n| self.taken[n] && narrow(n));
@@ -2197,6 +2201,14 @@ mod adaptive_tests {
             ((5.43, 4.74), 2.3, 0.07, 0.03, true, true),
             ((5.43, 4.74), 2.3, 0.07, 3e-3, true, true),
             ((5.43, 4.74), 2.3, 0.1, 3e-3, true, true),
+            // A lamp just outside the frame, its beam entering it: without
+            // the geometry, the 0.05 rad wedge left two pixels at the frame's
+            // edge outside their estimates (by up to 8×); a rule taking
+            // only beams narrower than ½ px left one, 1.08× (its beam 0.54
+            // px wide there), while it was a test for the rule.
+            ((-0.2, 4.6), 0.8, 0.05, 0.1, true, true),
+            ((-0.2, 4.6), 0.8, 0.05, 0.01, true, true),
+            ((-0.2, 4.6), 1.2, 0.05, 0.01, true, true),
             // 0.15 rad is not thin by that rule (≈ 0.3 px per px from the
             // image): the lattice's, honest, but a pixel converges only to
             // 5.8e-2 of its scale.
@@ -2242,7 +2254,7 @@ mod adaptive_tests {
                 out.len(),
                 stats.samples
             );
-            //assert_eq!(honest, out.len());
+            assert_eq!(honest, out.len());
             assert!(worst <= tol || !meets, "worst {worst:e}");
         }
     }
