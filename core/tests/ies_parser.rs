@@ -547,6 +547,8 @@ fn malformed_files_name_the_line() {
         ("bad_empty.ies", 1, "empty"),
         ("bad_count_mismatch.ies", 7, "must increase"),
         ("bad_single_vertical.ies", 6, "at least 2 vertical"),
+        // Found by `mutated_corpus_never_panics`: an infinite intensity bound.
+        ("bad_generation_type_overflow.ies", 9, "file generation type 1e308 overflows"),
     ];
     for &(name, line, needle) in cases {
         let path = data_dir().join(name);

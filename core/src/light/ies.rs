@@ -810,6 +810,18 @@ impl IesProfile {
         check(&h, "horizontal", hl, 360.0)?;
         check(&v, "vertical", vl, 180.0)?;
         let table = Table::new(h, v, rows, cycles_extra);
+        // A 2019 file's generation type multiplies the intensity as Cycles
+        // reads it (after the candela values were checked): it must not
+        // overflow it (the fuzzer found 1e308 there giving an infinite bound).
+        if !(table.max_interp * CYCLES_IES_SCALE * cycles_extra).is_finite() {
+            return Err(err(
+                blline,
+                format!(
+                    "{second_name} {ballast_lamp_factor:e} overflows the intensity (Cycles multiplies by it): {:e} cd × {ballast_lamp_factor:e}",
+                    table.max_interp
+                ),
+            ));
+        }
 
         Ok(IesProfile {
             source: source.to_string(),
