@@ -1352,7 +1352,7 @@ impl PolarPlan {
 
     /// The squares of the windows of pixel `(x, y)`, for a window of radius
     /// `r` (`2r` of them along each axis).
-    fn window_squares(&self, r: f64, x: usize, y: usize) -> impl Iterator<Item = (i64, i64)> + use<> {
+    fn window_squares(&self, r: f64, x: i64, y: i64) -> impl Iterator<Item = (i64, i64)> + use<> {
         // Square i spans [i + offset, i + offset + 1]; the window of x spans [x + ½ − r, x + ½ + r].
         let n = (2.0 * r).round() as i64;
         let (i0, j0) = (
@@ -1434,6 +1434,24 @@ impl PolarPlan {
     }
 }
 
+/// Where the ray `from + ρ·dir` (ρ ≥ 0) lies inside the rectangle
+/// `[lo, hi]`: `(ρ_in, ρ_out)`, or `(0, 0)` where it misses it (slab clipping).
+fn ray_in_rect(from: (f64, f64), dir: (f64, f64), lo: (f64, f64), hi: (f64, f64)) -> (f64, f64) {
+    let (mut near, mut far) = (0.0f64, f64::INFINITY);
+    for (d, a, b) in [(dir.0, lo.0 - from.0, hi.0 - from.0), (dir.1, lo.1 - from.1, hi.1 - from.1)] {
+        if d == 0.0 {
+            if a > 0.0 || b < 0.0 {
+                return (0.0, 0.0);
+            }
+            continue;
+        }
+        let (t0, t1) = if d > 0.0 { (a / d, b / d) } else { (b / d, a / d) };
+        near = near.max(t0);
+        far = far.min(t1);
+    }
+    if far > near { (near, far) } else { (0.0, 0.0) }
+}
+
 /// One pixel's share of a [`PolarSquare`]: `Σ w·L`, `Σ w` and the error
 /// estimate of `Σ w·L` (unnormalised, RGB).
 #[derive(Clone, Copy, Default)]
@@ -1490,13 +1508,7 @@ impl<S: FilterSample> PolarSquare<S> {
         let shared_by: Vec<usize> = holders
             .iter()
             .map(|&((px, py), _)| {
-                let n = (2.0 * r).round() as i64;
-                let (i0, j0) = (
-                    (px as f64 + 0.5 - r - plan.offset).round() as i64,
-                    (py as f64 + 0.5 - r - plan.offset).round() as i64,
-                );
-                (j0..j0 + n)
-                    .flat_map(|j| (i0..i0 + n).map(move |i| (i, j)))
+                plan.window_squares(r, px, py)
                     .filter(|sq| plan.squares.contains_key(sq))
                     .count()
                     .max(1)
@@ -1505,19 +1517,7 @@ impl<S: FilterSample> PolarSquare<S> {
         // The ray from the image at angle φ inside the square: ρ ∈ [ρ_in, ρ_out].
         let clip = |phi: f64| -> (f64, f64) {
             let (dy, dx) = phi.sin_cos();
-            let (mut lo, mut hi) = (0.0f64, f64::INFINITY);
-            for (d, a, b) in [(dx, x0 - cx, x1 - cx), (dy, y0 - cy, y1 - cy)] {
-                if d == 0.0 {
-                    if a > 0.0 || b < 0.0 {
-                        return (0.0, 0.0);
-                    }
-                    continue;
-                }
-                let (t0, t1) = if d > 0.0 { (a / d, b / d) } else { (b / d, a / d) };
-                lo = lo.max(t0);
-                hi = hi.min(t1);
-            }
-            if hi > lo { (lo, hi) } else { (0.0, 0.0) }
+            ray_in_rect((cx, cy), (dx, dy), (x0, y0), (x1, y1))
         };
         let two_pi = 2.0 * PI;
         let mut cuts: Vec<f64> = [(x0, y0), (x1, y0), (x0, y1), (x1, y1)]
@@ -1739,7 +1739,7 @@ pub(crate) fn filter_adaptive<S: FilterSample>(
     if let Some(thin) = job.beam_width {
         let squares: Vec<(i64, i64)> = flagged
             .iter()
-            .flat_map(|&i| plan.window_squares(radius, i % job.width, i / job.width))
+            .flat_map(|&i| plan.window_squares(radius, (i % job.width) as i64, (i / job.width) as i64))
             .collect();
         let images: Vec<(f64, f64)> = job.polar_images.iter().map(|p| p.at).collect();
         plan.add_thin_squares(squares.into_iter(), &images, job.light_images, thin);
@@ -2048,21 +2048,7 @@ mod adaptive_tests {
         let norm = (0.35875 * 2.0 * r).powi(2);
         let (parts, nodes) = theta;
         // Where the ray from the point along (c, s) is inside the window.
-        let clip = |c: f64, s: f64| -> (f64, f64) {
-            let (mut lo, mut hi) = (0.0f64, f64::INFINITY);
-            for (d, a, b) in [(c, x0 - px, x1 - px), (s, y0 - py, y1 - py)] {
-                if d == 0.0 {
-                    if a > 0.0 || b < 0.0 {
-                        return (0.0, 0.0);
-                    }
-                    continue;
-                }
-                let (t0, t1) = if d > 0.0 { (a / d, b / d) } else { (b / d, a / d) };
-                lo = lo.max(t0);
-                hi = hi.min(t1);
-            }
-            (lo, hi.max(lo))
-        };
+        let clip = |c: f64, s: f64| ray_in_rect((px, py), (c, s), (x0, y0), (x1, y1));
         let mut total = 0.0;
         for seg in cuts.windows(2) {
             for sub in 0..parts {
