@@ -2936,8 +2936,13 @@ fn render_channels<const C: usize, const K: usize>(
             }
             let m = p.value.iter().fold(0.0f64, |a, v| a.max(v.abs())).max(window_scale(i));
             let e_max = p.error.iter().fold(0.0f64, |a, v| a.max(*v));
+            let rel = if m > 0.0 { e_max / m } else { 0.0 };
             edge.max_abs = edge.max_abs.max(e_max);
-            edge.max_rel = edge.max_rel.max(if m > 0.0 { e_max / m } else { 0.0 });
+            edge.max_rel = edge.max_rel.max(rel);
+            // (A beam too thin for the lattice is served over the tolerance.)
+            if rel > tolerance {
+                edge.not_converged += 1;
+            }
         }
         edge.pixels += profiled.len() as u64 - both;
         edge.profile_pixels = profiled.len() as u64;
