@@ -80,7 +80,10 @@
 //! `G` quadratic through three exact rays per node and the quadratic's
 //! departure from a line charged as its error. Before this, such beams
 //! were left out of the filter: a 0.5° beam 30 m away rendered 19 %
-//! relative RMSE with estimates of 0.
+//! relative RMSE with estimates of 0. A beam narrower than ½ px
+//! ([`LATTICE_BLIND_PX`]) stays here even where its estimate misses the
+//! tolerance, and where it only clips a window's corner: the lattice's
+//! cells would not see it at all.
 //!
 //! Only for scenes whose in-scatter all comes from Blender spot lamps
 //! (smooth between their kinks, no IES, cones narrower than a hemisphere)
