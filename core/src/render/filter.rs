@@ -1364,10 +1364,11 @@ impl PolarPlan {
 
     /// Adds to the polar rule the squares among `candidates` that a thin
     /// beam crosses (`beam_width`, see [`AdaptiveFilterJob::beam_width`];
-    /// `images` the polar images' positions): a beam narrower than the lattice's ½ px cells can pass between their
-    /// corners, which then see it nowhere, and near the image its width
-    /// tends to 0 (a 0.5° beam 2.3 px from its lamp's image left a pixel at
-    /// 2.3e-5 ± 2.5e-5 against 1.1e-4). In polar coordinates about the
+    /// `images` the polar images' positions): a beam narrower than the
+    /// lattice's cells can pass between their corners, which then see it
+    /// nowhere, and near the image its width tends to 0 (a 0.5° beam left
+    /// a pixel 2.9 px from its lamp's image at 2.3e-5 ± 2.5e-5 against
+    /// 1.1e-4). In polar coordinates about the
     /// light's image the beam's edges are the cut lines (its cones'
     /// silhouettes are lines through the image), so the rule resolves it at
     /// any width. A square is added about the one image whose light's beam

@@ -1892,11 +1892,10 @@ fn render_channels<const C: usize, const K: usize>(
     // (or, where it cannot, with lattice cells down to 1/2048 px).
     // With the image directions of the lines through them along which the
     // in-scatter's peak has features (its cones' silhouettes), for the pixel
-    // filter's polar rule.
-    // With each image's light, as its beam's geometry in the image (no
-    // profile table) and the image direction of its axis: where the beam
-    // is narrower than the lattice's cells, the squares it crosses are
-    // integrated about the image too.
+    // filter's polar rule; and with each light's beam as geometry in the
+    // image (no profile table) and the image direction of its axis: where
+    // the beam is narrower than the lattice's cells, the squares it crosses
+    // are integrated about the image too.
     let (polar_images, image_beams): (Vec<filter::LightImage>, Vec<Option<ImageBeam>>) = stage_lights
         .points
         .iter()
@@ -3165,12 +3164,6 @@ fn second_order_filter_term(img: &[[f32; 3]], w: usize, i: usize, half_var: f64)
     })
 }
 
-/// Image angles (radians, from +x towards +y, which points down) of the
-/// lines through a point light's image `at` along which its in-scatter's
-/// peak has features: the silhouettes of the cones where its distribution
-/// has kinks ([`crate::light::PointSource::kinks`]), seen from the camera.
-/// A cone's silhouette generators are lines through the light, so their
-/// images are lines through `at`; the half along the lit nappe is listed.
 /// A light's beam as the pixel filter's polar rule sees it
 /// ([`filter::AdaptiveFilterJob::beam_width`]).
 struct ImageBeam {
@@ -3195,6 +3188,12 @@ fn image_direction(cam: &CameraRays, origin: glam::DVec3, dir: glam::DVec3, at: 
     None
 }
 
+/// Image angles (radians, from +x towards +y, which points down) of the
+/// lines through a point light's image `at` along which its in-scatter's
+/// peak has features: the silhouettes of the cones where its distribution
+/// has kinks ([`crate::light::PointSource::kinks`]), seen from the camera.
+/// A cone's silhouette generators are lines through the light, so their
+/// images are lines through `at`; the half along the lit nappe is listed.
 fn light_image_cuts<const C: usize>(cam: &CameraRays, light: &crate::light::PointSource<C>, at: (f64, f64)) -> Vec<f64> {
     let mut cuts = Vec::new();
     let reach = (cam.position - light.position).length();
