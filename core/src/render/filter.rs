@@ -1291,8 +1291,6 @@ pub(crate) struct PolarPlan {
     offset: f64,
     /// Square `(i, j)` (lower corner `(i + offset, j + offset)`) → image index.
     squares: HashMap<(i64, i64), usize>,
-    /// Per image: whether its squares are the polar rule's (not the graded mesh's).
-    taken: Vec<bool>,
 }
 
 impl PolarPlan {
@@ -1306,11 +1304,7 @@ impl PolarPlan {
         let offset = (0.5 + r).rem_euclid(1.0);
         let mut squares: HashMap<(i64, i64), usize> = HashMap::default();
         if r <= 0.0 || (2.0 * r - (2.0 * r).round()).abs() > 1e-12 {
-            return PolarPlan {
-                offset,
-                squares,
-                taken: vec![false; images.len()],
-            };
+            return PolarPlan { offset, squares };
         }
         let reach = 0.25;
         let mut claimed: HashMap<(i64, i64), Vec<usize>> = HashMap::default();
@@ -1346,8 +1340,7 @@ impl PolarPlan {
                 squares.insert(sq, owners[0]);
             }
         }
-        let taken = excluded.iter().map(|e| !e).collect();
-        PolarPlan { offset, squares, taken }
+        PolarPlan { offset, squares }
     }
 
     /// The squares of the windows of pixel `(x, y)`, for a window of radius
@@ -1386,6 +1379,11 @@ impl PolarPlan {
             return;
         }
         let reach = 0.25;
+        // The images whose own squares are the polar rule's.
+        let mut taken = vec![false; images.len()];
+        for &n in self.squares.values() {
+            taken[n] = true;
+        }
         let mut seen: rustc_hash::FxHashSet<(i64, i64)> = Default::default();
         for sq in candidates {
             if self.squares.contains_key(&sq) || !seen.insert(sq) {
@@ -1414,7 +1412,7 @@ impl PolarPlan {
                 let cells = distance / (AT_LIGHT_REACH + 1) as f64;
                 beam_width(n, centre).is_some_and(|w| w.is_nan() || w < cells)
             };
-            let mut owners = (0..self.taken.len()).filter(|&n| self.taken[n] && narrow(n));
+            let mut owners = (0..taken.len()).filter(|&n| taken[n] && narrow(n));
             if let (Some(n), None) = (owners.next(), owners.next()) {
                 self.squares.insert(sq, n);
             }
