@@ -91,6 +91,15 @@ pub const SCENE_VERSION: u32 = 1;
 /// `surface_transmittance.<name>_16.R` must fit OpenEXR's 255 bytes.
 pub const MAX_STAGE_LIGHT_NAME_BYTES: usize = 228;
 
+/// Largest distance of a mesh vertex (world space) from the origin, m. A ray's
+/// hit on a triangle is found from the vertices relative to the ray's origin,
+/// and its distance carries a rounding error of about 1e-16 × their size:
+/// ≈ 1e-9 of a hit 8 m away on a triangle 1e7 m across, but the whole distance
+/// on one 1e17 m across (measured: wrong depths, in-scatter off by half the
+/// image's maximum, with an estimate of 2e-6). 10 000 km holds any ground
+/// plane a camera needs; farther vertices are an error, not a silent loss.
+pub const MAX_MESH_COORDINATE_M: f64 = 1e7;
+
 /// A rejected scene: where (a field path such as `media[0].phase.g`) and why.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 #[error("{source_name}: {path}: {message}")]
@@ -1139,6 +1148,18 @@ fn describe_json_error(msg: &str) -> String {
     msg
 }
 
+/// `x` for a message: plain where that is short, else in exponent form
+/// (`5e-324`, not 324 digits).
+fn number(x: f64) -> String {
+    let plain = format!("{x}");
+    if plain.len() > 12 && x != 0.0 { format!("{x:e}") } else { plain }
+}
+
+/// " m" for a unit, nothing for none.
+fn with_unit(unit: &str) -> String {
+    if unit.is_empty() { String::new() } else { format!(" {unit}") }
+}
+
 #[derive(Default)]
 struct Validator {
     path: Vec<String>,
@@ -1185,17 +1206,18 @@ impl Validator {
     }
     fn range(&mut self, field: &str, x: f64, lo: f64, hi: f64, unit: &str) {
         if self.finite(field, x) && !(x >= lo && x <= hi) {
-            self.fail(field, format!("{x} {unit} is outside the allowed range {lo}..={hi}"));
+            let (x, lo, hi) = (number(x), number(lo), number(hi));
+            self.fail(field, format!("{x}{} is outside the allowed range {lo}..={hi}", with_unit(unit)));
         }
     }
     fn positive(&mut self, field: &str, x: f64, unit: &str) {
         if self.finite(field, x) && x <= 0.0 {
-            self.fail(field, format!("must be > 0 {unit}, got {x}"));
+            self.fail(field, format!("must be > 0{}, got {}", with_unit(unit), number(x)));
         }
     }
     fn non_negative(&mut self, field: &str, x: f64, unit: &str) {
         if self.finite(field, x) && x < 0.0 {
-            self.fail(field, format!("must be ≥ 0 {unit}, got {x}"));
+            self.fail(field, format!("must be ≥ 0{}, got {}", with_unit(unit), number(x)));
         }
     }
     fn vec3(&mut self, field: &str, v: [f64; 3]) -> bool {
@@ -1397,10 +1419,7 @@ impl Validator {
                     } else if !upv.length().is_finite() {
                         self.fail("look_at.up", "the up vector's length overflows f64: give a unit vector");
                     } else if fwd.length() < 1e-12 {
-                        self.fail(
-                            "look_at.target",
-                            "target coincides with the camera position: zero-length view direction",
-                        );
+                        self.fail("look_at.target", "target coincides with the position: zero-length direction");
                     } else if upv.length() < 1e-300 {
                         self.fail("look_at.up", "zero-length direction: give a non-zero vector");
                     } else if fwd.normalize().cross(upv.normalize()).length() < 1e-9 {
@@ -1483,6 +1502,24 @@ impl Validator {
                 }
             }
             self.transform(&m.transform);
+            if self.first.is_none() {
+                let mat = m.transform.to_matrix();
+                let far = m.positions.iter().enumerate().find_map(|(j, p)| {
+                    let w = mat.transform_point3(DVec3::from(*p));
+                    (w.is_nan() || w.abs().max_element() > MAX_MESH_COORDINATE_M).then_some((j, w))
+                });
+                if let Some((j, w)) = far {
+                    self.fail(
+                        &format!("positions[{j}]"),
+                        format!(
+                            "in world space ({:e}, {:e}, {:e}) m, beyond ±{MAX_MESH_COORDINATE_M:e} m: a ray's hit on a triangle loses \
+                             about 1e-16 × its vertices' distance from the ray's origin, so farther vertices would give wrong \
+                             depths and shadows; keep meshes within ±{MAX_MESH_COORDINATE_M:e} m (a ground plane 10 000 km across is plenty)",
+                            w.x, w.y, w.z
+                        ),
+                    );
+                }
+            }
             self.pop();
         }
         for (i, l) in s.lights.iter().enumerate() {
