@@ -725,14 +725,23 @@ fn prepare_stage_lights<const C: usize>(scene: &Scene, report: &mut Report) -> R
             _ => {}
         }
     }
-    if out.len() > stage::MAX_LIGHT_LAYERS
-        && (scene.output.layers.contains(&LayerKind::InscatterPerLight)
-            || scene.output.layers.contains(&LayerKind::SurfaceTransmittancePerLight))
-    {
+    // The lights beyond the layer cap, named: layers go to the contributing
+    // lights first (point and spot lights, then windows), then to those that
+    // contribute nothing (their `inscatter.<light>` layers are 0).
+    let per_light = scene.output.layers.contains(&LayerKind::InscatterPerLight);
+    let surface = scene.output.layers.contains(&LayerKind::SurfaceTransmittancePerLight);
+    let names = out.names();
+    let mut dropped: Vec<String> = names.iter().skip(stage::MAX_LIGHT_LAYERS).cloned().collect();
+    if per_light {
+        let room = stage::MAX_LIGHT_LAYERS.saturating_sub(names.len());
+        dropped.extend(out.dark.iter().skip(room).cloned());
+    }
+    if (per_light || surface) && !dropped.is_empty() {
+        let total = names.len() + if per_light { out.dark.len() } else { 0 };
         report.warnings.push(format!(
-            "{} stage lights: per-light layers are written for the first {} only; `inscatter` contains all of them",
-            out.len(),
-            stage::MAX_LIGHT_LAYERS
+            "{total} stage lights: per-light layers are written for {} of them (the contributing lights first); none for {}; `inscatter` contains all of them",
+            stage::MAX_LIGHT_LAYERS,
+            dropped.join(", ")
         ));
     }
     Ok(out)
