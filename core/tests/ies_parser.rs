@@ -302,6 +302,46 @@ fn lm63_2019_gap_and_file_generation_type() {
 }
 
 #[test]
+fn classic_mac_line_ends_utf16_and_endless_files() {
+    // A file whose lines end in a lone CR parses as its CR LF original does.
+    let crlf = std::fs::read_to_string(data_dir().join("lm63_1991_quadrant_crlf.ies")).unwrap();
+    let cr_only = crlf.replace("\r\n", "\r");
+    assert!(!cr_only.contains('\n'));
+    let a = IesProfile::parse(&cr_only, "cr_only").unwrap();
+    let b = load("lm63_1991_quadrant_crlf.ies");
+    assert_eq!((a.candela.clone(), a.keyword("MANUFAC")), (b.candela.clone(), b.keyword("MANUFAC")));
+    // A bad number on line 12 is reported there with any line ends.
+    let lines: Vec<&str> = crlf.split("\r\n").collect();
+    let bad = lines
+        .iter()
+        .enumerate()
+        .map(|(i, l)| if i == 11 { "1.0 x" } else { l })
+        .collect::<Vec<_>>()
+        .join("\r");
+    assert_eq!(IesProfile::parse(&bad, "bad").unwrap_err().line, 12);
+    // UTF-16 (as Windows' Notepad saves "Unicode") is named, at line 1.
+    let tmp = std::env::temp_dir().join(format!("tyndall_ies_{}", std::process::id()));
+    std::fs::create_dir_all(&tmp).unwrap();
+    let utf16 = tmp.join("utf16.ies");
+    let mut bytes = vec![0xFF, 0xFE];
+    bytes.extend(crlf.encode_utf16().flat_map(|u| u.to_le_bytes()));
+    std::fs::write(&utf16, bytes).unwrap();
+    let e = IesProfile::load(&utf16).unwrap_err();
+    assert_eq!(e.line, 1);
+    assert!(e.message.contains("UTF-16"), "{e}");
+    // A tilt file that never ends is cut off at MAX_FILE_BYTES with an error at the TILT line.
+    #[cfg(unix)]
+    {
+        let endless = tmp.join("endless.ies");
+        std::fs::write(&endless, crlf.replacen("TILT=NONE", "TILT=/dev/zero", 1)).unwrap();
+        let e = IesProfile::load(&endless).unwrap_err();
+        assert!(e.message.contains("larger than 256 MiB"), "{e}");
+        assert!(e.line > 1, "{e}");
+    }
+    std::fs::remove_dir_all(&tmp).unwrap();
+}
+
+#[test]
 fn uplight_90_180() {
     let p = load("typec_uplight_90_180.ies");
     assert_eq!(p.candela(dir(45.0, 0.0)), 0.0);
@@ -720,7 +760,8 @@ fn apply(mut bytes: Vec<u8>, m: &Mutation) -> Vec<u8> {
 
 fn check_robust(bytes: &[u8]) {
     let text = String::from_utf8_lossy(bytes);
-    let n_lines = text.lines().count();
+    // Lines end at LF, CR LF or a lone CR, as the parser counts them.
+    let n_lines = text.replace("\r\n", "\n").replace('\r', "\n").lines().count();
     match IesProfile::parse(&text, "fuzz") {
         Ok(p) => {
             let bound = p.max_cycles_factor();

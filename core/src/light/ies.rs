@@ -130,6 +130,34 @@ pub const MAX_VALUES: usize = 10_000_000;
 /// Largest number of tilt angle/factor pairs accepted.
 pub const MAX_TILT_PAIRS: usize = 100_000;
 
+/// Largest IES or tilt file read, bytes: [`MAX_VALUES`] candela values of up
+/// to ~25 characters each. A larger file (or an endless one such as
+/// `/dev/zero`) is an error, not an unbounded read.
+pub const MAX_FILE_BYTES: u64 = 256 << 20;
+
+/// The bytes of `path`, at most [`MAX_FILE_BYTES`] of them.
+fn read_capped(path: &Path) -> Result<Vec<u8>, String> {
+    use std::io::Read;
+    let file = std::fs::File::open(path).map_err(|e| e.to_string())?;
+    let mut bytes = Vec::new();
+    file.take(MAX_FILE_BYTES + 1).read_to_end(&mut bytes).map_err(|e| e.to_string())?;
+    if bytes.len() as u64 > MAX_FILE_BYTES {
+        return Err(format!("larger than {} MiB: not an LM-63 photometric file", MAX_FILE_BYTES >> 20));
+    }
+    Ok(bytes)
+}
+
+/// Decodes a file's bytes; UTF-16 (a byte-order mark, or NUL bytes among the
+/// first ones) is an error: LM-63 files are ASCII. Invalid UTF-8 (Latin-1
+/// keywords) is replaced, not rejected.
+fn decode(bytes: &[u8]) -> Result<std::borrow::Cow<'_, str>, String> {
+    let head = &bytes[..bytes.len().min(64)];
+    if head.starts_with(&[0xFF, 0xFE]) || head.starts_with(&[0xFE, 0xFF]) || head.contains(&0) {
+        return Err("the file is UTF-16 (or binary), not text: LM-63 files are ASCII; save it as ASCII or UTF-8".to_string());
+    }
+    Ok(String::from_utf8_lossy(bytes))
+}
+
 /// Tolerance (degrees) Cycles uses to compare angles (`angle_close`).
 const ANGLE_TOL: f64 = 1e-4;
 
@@ -436,13 +464,34 @@ impl<'a> Reader<'a> {
 
 /// Lines of `text` as (1-based number, content without line end); and the line
 /// number used for end-of-file errors.
+/// The numbered lines of `text`: a line ends at LF, CR LF or a lone CR (files
+/// saved by classic Mac OS tools end their lines with CR only).
 fn split_lines(text: &str) -> (Vec<(usize, &str)>, usize) {
-    let lines: Vec<(usize, &str)> = text
-        .split('\n')
-        .enumerate()
-        .map(|(i, l)| (i + 1, l.strip_suffix('\r').unwrap_or(l)))
-        .collect();
-    let eof_line = text.lines().count().max(1);
+    let bytes = text.as_bytes();
+    let mut lines: Vec<(usize, &str)> = Vec::new();
+    let mut start = 0;
+    let mut i = 0;
+    while i < bytes.len() {
+        match bytes[i] {
+            b'\n' => {
+                lines.push((lines.len() + 1, &text[start..i]));
+                start = i + 1;
+            }
+            b'\r' => {
+                lines.push((lines.len() + 1, &text[start..i]));
+                if bytes.get(i + 1) == Some(&b'\n') {
+                    i += 1;
+                }
+                start = i + 1;
+            }
+            _ => {}
+        }
+        i += 1;
+    }
+    // The text after the last line break (empty when the text ends with one),
+    // as `str::split` gives it.
+    lines.push((lines.len() + 1, &text[start..]));
+    let eof_line = if start == bytes.len() { lines.len() - 1 } else { lines.len() }.max(1);
     (lines, eof_line)
 }
 
@@ -499,12 +548,16 @@ impl IesProfile {
     /// the path. Invalid UTF-8 (Latin-1 headers) is replaced, not rejected.
     pub fn load(path: &Path) -> Result<IesProfile, IesError> {
         let source = path.display().to_string();
-        let bytes = std::fs::read(path).map_err(|e| IesError {
+        let bytes = read_capped(path).map_err(|e| IesError {
             source: source.clone(),
             line: 0,
             message: format!("cannot read '{source}': {e}"),
         })?;
-        let text = String::from_utf8_lossy(&bytes);
+        let text = decode(&bytes).map_err(|message| IesError {
+            source: source.clone(),
+            line: 1,
+            message,
+        })?;
         let dir = path.parent().unwrap_or(Path::new("."));
         Self::parse_impl(&text, &source, Some(dir))
     }
@@ -610,13 +663,13 @@ impl IesProfile {
                 ));
             };
             let path = dir.join(tilt_value);
-            let data = std::fs::read(&path).map_err(|e| {
+            let data = read_capped(&path).map_err(|e| {
                 err(
                     tilt_line_no,
                     format!("TILT={tilt_value}: cannot read tilt file '{}': {e}", path.display()),
                 )
             })?;
-            let ttext = String::from_utf8_lossy(&data);
+            let ttext = decode(&data).map_err(|e| err(tilt_line_no, format!("TILT={tilt_value}: tilt file '{}': {e}", path.display())))?;
             let (tlines, teof) = split_lines(&ttext);
             let tsource = path.display().to_string();
             let mut tr = Reader::new(&tsource, &tlines, teof);
