@@ -36,6 +36,53 @@ pub enum CliError {
         /// The cause.
         source: std::io::Error,
     },
+    /// An output path that cannot be written as asked (checked before the render).
+    #[error("{path}: {message}")]
+    Output {
+        /// The path given.
+        path: PathBuf,
+        /// What is wrong with it.
+        message: String,
+    },
+}
+
+/// Checks the output paths before a render or a sky, so that no work is lost
+/// and nothing is half written: the image must end in `.exr` and the preview
+/// in `.png` (their formats), neither path may be a directory, and the
+/// folders of all three are created.
+pub fn prepare_outputs(out: &Path, preview: Option<&Path>, report: Option<&Path>) -> Result<(), CliError> {
+    let wants = |p: &Path, ext: &str, what: &str| -> Result<(), CliError> {
+        let format = if ext == "exr" { "an OpenEXR" } else { "a PNG" };
+        let ok = p.extension().and_then(|e| e.to_str()).is_some_and(|e| e.eq_ignore_ascii_case(ext));
+        if ok {
+            Ok(())
+        } else {
+            Err(CliError::Output {
+                path: p.to_path_buf(),
+                message: format!("the {what} is written as {format} file: give a file name ending in .{ext}"),
+            })
+        }
+    };
+    let all = || std::iter::once(out).chain(preview).chain(report);
+    if let Some(p) = all().find(|p| p.is_dir()) {
+        return Err(CliError::Output {
+            path: p.to_path_buf(),
+            message: "is a directory: give a file name in it".into(),
+        });
+    }
+    wants(out, "exr", "image")?;
+    if let Some(p) = preview {
+        wants(p, "png", "preview")?;
+    }
+    for p in all() {
+        if let Some(parent) = p.parent().filter(|d| !d.as_os_str().is_empty()) {
+            std::fs::create_dir_all(parent).map_err(|source| CliError::Io {
+                path: parent.to_path_buf(),
+                source,
+            })?;
+        }
+    }
+    Ok(())
 }
 
 #[derive(Parser, Debug)]
@@ -519,6 +566,7 @@ pub fn render_to_files_reporting(
     progress: Option<tyndall_core::render::Progress<'_>>,
     cancel: Option<&std::sync::atomic::AtomicBool>,
 ) -> Result<Report, CliError> {
+    prepare_outputs(out, preview, report_path)?;
     let (images, mut report) = tyndall_core::render_cancellable(scene, progress, cancel)?;
     // A cancel that came after the last ray: still nothing is written.
     let cancelled = || cancel.is_some_and(|c| c.load(std::sync::atomic::Ordering::Relaxed));
@@ -674,6 +722,7 @@ pub fn sky_to_files_with(
             ),
         }));
     }
+    prepare_outputs(out, preview, report_path)?;
     let (tex, mut report) = tyndall_core::sky::render_world_with(model, name, settings, &options.build);
     if let Some(parent) = out.parent().filter(|p| !p.as_os_str().is_empty()) {
         std::fs::create_dir_all(parent).map_err(|source| CliError::Io {
