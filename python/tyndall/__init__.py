@@ -109,7 +109,14 @@ def _non_finite(value: Any, path: str) -> tuple[str, float] | None:
 def _json_default(value: Any) -> Any:
     """numpy scalars and arrays inside a scene dict, as JSON numbers and lists."""
     if isinstance(value, np.generic):
-        return value.item()
+        item = value.item()
+        if isinstance(item, np.generic):
+            # np.longdouble (and clongdouble) stay numpy scalars under .item(): JSON gets
+            # the nearest double, or a TypeError that names the field (not a recursion).
+            if isinstance(item, np.floating):
+                return float(item)
+            raise TypeError(f"a scene holds numbers, strings, lists and dicts, not {type(value).__name__}")
+        return item
     if isinstance(value, np.ndarray):
         return value.tolist()
     raise TypeError(f"a scene holds numbers, strings, lists and dicts, not {type(value).__name__}")
@@ -195,7 +202,19 @@ def _checked_overrides(
             raise _scene_error(
                 "output.layers", f"layers must be a list of layer names, not the string {layers!r}", "<render>"
             )
-        layers = list(layers)
+        if isinstance(layers, Mapping):
+            raise _scene_error("output.layers", "layers must be a list of layer names, not a mapping", "<render>")
+        try:
+            layers = list(layers)
+        except TypeError:
+            raise _scene_error(
+                "output.layers", f"layers must be a list of layer names, got {type(layers).__name__}", "<render>"
+            ) from None
+        for i, name in enumerate(layers):
+            if not isinstance(name, str):
+                raise _scene_error(
+                    f"output.layers[{i}]", f"a layer name is a string, got {type(name).__name__} {name!r}", "<render>"
+                )
     return tolerance, threads, layers
 
 
