@@ -218,8 +218,10 @@ class _Converter:
         if up not in (UsdGeom.Tokens.y, UsdGeom.Tokens.z):
             raise UsdSceneError("/", "upAxis", f"must be Y or Z, got {up!r}")
         mpu = float(UsdGeom.GetStageMetersPerUnit(stage))
-        if not math.isfinite(mpu) or mpu <= 0.0:
-            raise UsdSceneError("/", "metersPerUnit", f"must be finite and > 0, got {mpu}")
+        if not math.isfinite(mpu) or not 1e-9 <= mpu <= 1e9:
+            # (Beyond that every length overflows or vanishes on the way to metres, and the
+            # error would surface later at a field the stage never wrote.)
+            raise UsdSceneError("/", "metersPerUnit", f"must be within 1e-9..=1e9 (m per stage unit), got {mpu:g}")
         self.mpu = mpu
         self.up = str(up)
         self.to_world = _geom.stage_to_world(up, mpu)
@@ -299,7 +301,15 @@ class _Converter:
         if intensity < 0.0:
             raise UsdSceneError(path, "inputs:intensity", f"must be ≥ 0, got {intensity}")
         exposure = _float(prim, "inputs:exposure", self.time, 0.0)
-        return intensity * 2.0**exposure
+        try:
+            scaled = intensity * 2.0**exposure
+        except OverflowError:
+            scaled = math.inf
+        if not math.isfinite(scaled):
+            raise UsdSceneError(
+                path, "inputs:exposure", f"intensity {intensity:g} × 2^{exposure:g} overflows: give a smaller exposure"
+            )
+        return scaled
 
     def sphere_light(self, prim: Usd.Prim) -> dict[str, Any] | None:
         path = str(prim.GetPath())
@@ -335,6 +345,13 @@ class _Converter:
             return None
         if ies:
             light["ies"] = ies
+        scales = [_geom.axis(m, i).GetLength() for i in range(3)]
+        shaped = bool(ies) or prim.HasAPI(UsdLux.ShapingAPI)
+        if shaped and max(scales) > min(scales) * (1.0 + 1e-6):
+            self.notes.append(
+                f"{path}: non-uniform scale ({', '.join(f'{k:.4g}' for k in scales)}): its cone or profile is read "
+                "unstretched (only the orientation is kept; Blender would stretch a spot's cone into an ellipse)"
+            )
         if not self.casts_shadows(prim):
             light["casts_shadows"] = False
 
@@ -749,8 +766,25 @@ class _Converter:
         cameras: list[Usd.Prim] = []
         render_settings: list[Usd.Prim] = []
         medium_paths: list[Sdf.Path] = []
+        instancers: list[Sdf.Path] = []
         for prim in prims:
             type_name = str(prim.GetTypeName())
+            if any(prim.GetPath().HasPrefix(p) for p in instancers):
+                continue  # a PointInstancer's prototype: drawn only at the instances, which are left out
+            if type_name == "PointInstancer":
+                instancers.append(prim.GetPath())
+                indices = UsdGeom.PointInstancer(prim).GetProtoIndicesAttr().Get(self.time)
+                inside = [
+                    str(q.GetTypeName()) for q in Usd.PrimRange(prim, pred) if q != prim and q.GetTypeName()
+                ]
+                lamps = sum(1 for t in inside if t in ("SphereLight", "DistantLight") or t in _UNSUPPORTED_LIGHTS)
+                self.skip(
+                    prim,
+                    f"PointInstancer prims are not supported: its {len(indices) if indices is not None else 0} "
+                    f"instances are left out ({lamps} lights and {inside.count('Mesh')} meshes among its prototypes, "
+                    "which are drawn only where it places them)",
+                )
+                continue
             if _authored(prim, NS + "medium:type"):
                 media.append(self.medium(prim))
                 medium_paths.append(prim.GetPath())
