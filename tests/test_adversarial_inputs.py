@@ -292,3 +292,72 @@ def test_a_sun_through_a_needle_phase_lobe_finishes_and_matches_the_closed_form(
     assert np.all(np.isfinite(phase)) and np.all(phase > 0)
     # Far outside the disc the average is close to the lobe's own tail.
     assert phase[0, 0] < 1e-2 * averaged
+
+
+def _with_ground(half_width_m: float) -> dict:
+    """The spot stage with a triangle at z = 1 whose corners are ±half_width_m away."""
+    s = spot_stage(1000.0)
+    r = half_width_m
+    s["meshes"].append({"name": "ground", "positions": [[-r, -r, 1], [r, -r, 1], [0, r, 1]], "triangles": [[0, 1, 2]]})
+    s["output"]["layers"] = ["inscatter", "depth", "error"]
+    return s
+
+
+def test_a_ground_triangle_beyond_the_mesh_range_is_an_error() -> None:
+    """A triangle 1e17 m across lost its hits' distances to rounding (depth 0 m in 136
+    of 576 pixels, in-scatter off by half the image's maximum, with an estimate of
+    2.2e-6; beyond ≈ 1e120 m it was ignored altogether): vertices farther than
+    MAX_MESH_COORDINATE_M (1e7 m) are a SceneFormatError naming the vertex. Within
+    it, a 1e7 m ground renders as a 1e3 m one does."""
+    near, _ = tyndall.render(_with_ground(1e3))
+    far, report = tyndall.render(_with_ground(1e7))
+    # Depth is stored as f32: two of its steps (1.2e-7 each; the hit's own rounding is ≈ 1e-9 here).
+    np.testing.assert_allclose(far["depth"], near["depth"], rtol=2.5e-7)
+    scale = float(near["inscatter"].max())
+    assert np.abs(far["inscatter"] - near["inscatter"]).max() <= 1e-6 * scale + far["error"].max()
+    assert report["warnings"] == []
+    for r in (1.01e7, 1e17, 1e150):
+        beyond = r"meshes\[1\]\.positions\[0\]: in world space .*beyond ±1e7 m"
+        with pytest.raises(tyndall.SceneFormatError, match=beyond):
+            tyndall.render(_with_ground(r))
+    # Through a transform as well: 1e4 m scaled by 1e4.
+    s = _with_ground(1e4)
+    s["meshes"][1]["transform"] = {"scale": [1e4, 1e4, 1.0]}
+    with pytest.raises(tyndall.SceneFormatError, match=r"meshes\[1\]\.positions\[0\]"):
+        tyndall.render(s)
+
+
+def test_lights_beyond_the_layer_cap_are_named_dark_ones_too() -> None:
+    """Per-light layers stop at 16. With 10 lit and 10 dark spots, the dark ones d6–d9 got
+    no layer and no warning (the count looked at the lit lights only); the warning now
+    names every light without a layer."""
+    def spot(name: str, x: float, power: float) -> dict:
+        return {"type": "spot", "name": name, "position": [x, 0, 4], "power_w": power, "spot_size_deg": 20,
+                "orientation": {"look_at": {"target": [x, 0, 0], "up": [0, 1, 0]}}}
+
+    s = spot_stage(1000.0)
+    s["lights"] = [spot(f"s{i}", -4.5 + i, 500.0) for i in range(10)] + [spot(f"d{i}", 0.0, 0.0) for i in range(10)]
+    s["output"]["layers"] = ["inscatter", "inscatter_per_light"]
+    layers, report = tyndall.render(s)
+    per_light = sorted(k for k in layers if k.startswith("inscatter."))
+    assert per_light == sorted([f"inscatter.s{i}" for i in range(10)] + [f"inscatter.d{i}" for i in range(6)])
+    warnings = report["warnings"]
+    assert any("20 stage lights" in w and "none for d6, d7, d8, d9;" in w for w in warnings), warnings
+
+
+def test_numpy_long_double_and_bad_layer_names() -> None:
+    """np.longdouble stays a numpy scalar under .item(): the dict's encoding recursed
+    (RecursionError). A layer name that is not a string raised a bare TypeError."""
+    s = spot_stage(1000.0)
+    s["lights"][0]["power_w"] = np.longdouble(1000.0)
+    a, _ = tyndall.render(s)
+    b, _ = tyndall.render(spot_stage(1000.0))
+    np.testing.assert_array_equal(a["inscatter"], b["inscatter"])
+    with pytest.raises(tyndall.SceneFormatError, match=r"output\.layers\[1\]: a layer name is a string, got int 5"):
+        tyndall.render(spot_stage(1000.0), layers=["inscatter", 5])
+    with pytest.raises(tyndall.SceneFormatError, match=r"output\.layers: .*not a mapping"):
+        tyndall.render(spot_stage(1000.0), layers={"inscatter": 1})
+    with pytest.raises(tyndall.SceneFormatError, match=r"5e-324 is outside the allowed range"):
+        s = spot_stage(1000.0)
+        s["output"]["tolerance"] = 5e-324
+        tyndall.render(s)

@@ -167,3 +167,31 @@ def test_schema_is_json_with_camera_and_media(tyndall_exe: Path) -> None:
     assert {"camera", "media", "lights", "meshes", "output", "version"} <= set(schema["properties"])
     assert set(schema["required"]) == {"version", "camera"}
     assert schema == json.loads(tyndall.scene_schema())
+
+
+def test_output_paths_are_checked_before_the_render(
+    tyndall_exe: Path, small_scene: Callable[..., SceneDict], tmp_path: Path
+) -> None:
+    """`--report` into a missing folder failed after the EXR was written, naming a temp
+    file; `--out` naming a folder said "Not a directory"; `--out x.png` wrote an EXR
+    under that name. The paths are now checked (and folders made) before the render."""
+    scene = tmp_path / "s.json"
+    scene.write_text(json.dumps(small_scene()))
+    report = tmp_path / "b" / "c" / "r.json"
+    out, preview = tmp_path / "a" / "o.exr", tmp_path / "d" / "p.png"
+    r = run(tyndall_exe, "render", scene, "--out", out, "--report", report, "--preview", preview, "--quiet")
+    assert r.returncode == 0, r.stderr
+    assert json.loads((tmp_path / "b" / "c" / "r.json").read_text())["resolution"]
+    assert png_size((tmp_path / "d" / "p.png").read_bytes())[0] > 0
+    folder = tmp_path / "folder"
+    folder.mkdir()
+    for args, message in (
+        (("--out", folder), "is a directory: give a file name in it"),
+        (("--out", tmp_path / "x.png"), "written as an OpenEXR file: give a file name ending in .exr"),
+        (("--out", tmp_path / "y.exr", "--preview", tmp_path / "p.jpg"), "written as a PNG file"),
+        (("--out", tmp_path / "z.exr", "--report", folder), "is a directory"),
+    ):
+        r = run(tyndall_exe, "render", scene, *args, "--quiet")
+        assert r.returncode == 1 and message in r.stderr, r.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a", "b", "d", "folder", "s.json"]
+    assert list(folder.iterdir()) == []

@@ -495,6 +495,8 @@ def _bad(tmp_path: Path, case: str) -> Usd.Stage:
         UsdLux.ShapingAPI.Apply(light.GetPrim()).CreateShapingIesFileAttr(Sdf.AssetPath("./missing.ies"))
     elif case == "color":
         light.CreateColorAttr(Gf.Vec3f(1, -0.5, 1))
+    elif case == "exposure":  # 2^2000 overflowed in Python: a bare OverflowError
+        light.CreateExposureAttr(2000.0)
     elif case == "medium":
         stage.DefinePrim("/World/Haze").CreateAttribute("tyndall:medium:type", Sdf.ValueTypeNames.String).Set("fog")
     return stage
@@ -510,6 +512,7 @@ def _bad(tmp_path: Path, case: str) -> Usd.Stage:
         ("scale", "xformOpOrder"),
         ("ies", "inputs:shaping:ies:file"),
         ("color", "inputs:color"),
+        ("exposure", "inputs:exposure"),
         ("medium", "tyndall:medium:type"),
     ],
 )
@@ -879,3 +882,51 @@ def test_blender_usd_scene_usd_blender_round_trip(tmp_path: Path) -> None:
         m = back["meshes"][by_blender[obj]]
         assert _close(sorted(m["world_vertices"]), sorted(v["world_vertices"]), 1e-5), obj
         assert m["triangles"] == v["triangles"]
+
+
+def test_point_instancer_prototypes_are_not_lights_of_their_own(tmp_path: Path) -> None:
+    """A PointInstancer's prototype lamp was converted where it stands (a light that
+    the stage does not draw) while its instances were dropped: now the instancer and
+    everything under it is left out, and the note counts what that drops."""
+    stage = _stage(tmp_path)
+    haze = stage.DefinePrim("/World/Haze")
+    haze.CreateAttribute("tyndall:medium:type", Sdf.ValueTypeNames.String).Set("homogeneous")
+    haze.CreateAttribute("tyndall:medium:scattering", Sdf.ValueTypeNames.Double).Set(0.03)
+    UsdLux.SphereLight.Define(stage, "/World/Key")
+    inst = UsdGeom.PointInstancer.Define(stage, "/World/PI")
+    lamp = UsdLux.SphereLight.Define(stage, "/World/PI/Protos/Lamp")
+    inst.CreatePrototypesRel().SetTargets([lamp.GetPath()])
+    inst.CreatePositionsAttr([Gf.Vec3f(-2, 0, 4), Gf.Vec3f(0, 0, 4), Gf.Vec3f(2, 0, 4)])
+    inst.CreateProtoIndicesAttr([0, 0, 0])
+    conv = convert_stage(stage)
+    assert [light["name"] for light in conv.scene["lights"]] == ["Key"]
+    assert conv.skipped == [
+        {
+            "prim": "/World/PI",
+            "reason": "PointInstancer prims are not supported: its 3 instances are left out (1 lights and 0 meshes "
+            "among its prototypes, which are drawn only where it places them)",
+        }
+    ]
+
+
+@pytest.mark.parametrize("mpu", [1e-300, 1e-10, 2e9, 1e300])
+def test_meters_per_unit_out_of_range_is_named(tmp_path: Path, mpu: float) -> None:
+    """1e-300 was blamed on a prim's xformOpOrder, 1e300 on camera.clip_start_m (a field
+    the stage never wrote): metersPerUnit itself is named now."""
+    stage = _stage(tmp_path, mpu=mpu)
+    with pytest.raises(UsdSceneError, match=r"^/\.metersPerUnit: must be within 1e-9\.\.=1e9"):
+        convert_stage(stage)
+
+
+def test_non_uniform_scale_of_a_shaped_light_is_noted(tmp_path: Path) -> None:
+    """Only a spot's orientation is read: a stretched cone is read round, and said so."""
+    stage = _stage(tmp_path)
+    haze = stage.DefinePrim("/World/Haze")
+    haze.CreateAttribute("tyndall:medium:type", Sdf.ValueTypeNames.String).Set("homogeneous")
+    haze.CreateAttribute("tyndall:medium:scattering", Sdf.ValueTypeNames.Double).Set(0.03)
+    spot = UsdLux.SphereLight.Define(stage, "/World/Spot")
+    UsdLux.ShapingAPI.Apply(spot.GetPrim()).CreateShapingConeAngleAttr(20.0)
+    UsdGeom.XformCommonAPI(spot).SetScale(Gf.Vec3f(2, 1, 1))
+    conv = convert_stage(stage)
+    assert conv.scene["lights"][0]["type"] == "spot"
+    assert any(n.startswith("/World/Spot: non-uniform scale (2, 1, 1)") for n in conv.notes), conv.notes
