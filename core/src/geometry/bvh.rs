@@ -64,6 +64,10 @@
 //! three, so vertex coordinates relative to the ray origin (and `dir`'s
 //! components relative to each other) should stay within about `1e100`; far
 //! beyond that they overflow to ∞/NaN, which gives a miss, never a panic.
+//! Within that range `t` carries a rounding error of about 1e-16 × the
+//! vertices' distance from the ray's origin (the edge functions and `t`'s
+//! numerator are sums of products of those coordinates): scenes keep their
+//! meshes within `scene::MAX_MESH_COORDINATE_M`.
 //!
 //! # Why not an existing crate
 //!
