@@ -252,7 +252,8 @@ class TYNDALL_OT_generate_sky(_JobOperator, bpy.types.Operator):
             staging.commit(res["files"])
             if apply_results:
                 lamp = ctx.scene.objects.get(sun_name) if sun_name else None
-                results.apply_sky(ctx.scene, os.path.join(folder, tasks.SKY_EXR), res["report"], lamp, update_sun)
+                sky_exr = os.path.join(folder, tasks.SKY_EXR)
+                results.apply_sky(ctx.scene, sky_exr, res["report"], lamp, update_sun, ctx.view_layer)
             lamp_rep = res["report"].get("sun_lamp", {})
             return (
                 f"Tyndall: sky.exr written to {folder} (sun {params.sun_elevation_deg:.1f}° elevation, "
@@ -413,7 +414,7 @@ def import_results(context: bpy.types.Context, folder: str, sky: bool = True, vo
     if sky and os.path.isfile(sky_exr):
         rep_path = os.path.join(folder, tasks.SKY_REPORT_JSON)
         rep = tasks.read_json(rep_path) if os.path.isfile(rep_path) else {}
-        results.apply_sky(scene, sky_exr, rep, gather.sun_lamp(scene), st.sky_update_sun)
+        results.apply_sky(scene, sky_exr, rep, gather.sun_lamp(scene), st.sky_update_sun, context.view_layer)
         done.append("world sky" + (" + sun lamp" if rep.get("sun_lamp") and st.sky_update_sun else ""))
     return done
 

@@ -16,9 +16,9 @@ class _TyndallPanel:
     bl_category = "Tyndall"
 
 
-def _world_summary(scene: bpy.types.Scene) -> str:
+def _world_summary(scene: bpy.types.Scene, view_layer: bpy.types.ViewLayer) -> str:
     try:
-        media = gather.gather_world_medium(scene.world)
+        media = gather.gather_world_medium(gather.world_of(scene, view_layer))
     except SceneInputError as e:
         return f"Error: {e}"
     if not media:
@@ -46,7 +46,7 @@ class VIEW3D_PT_tyndall_volumetrics(_TyndallPanel, bpy.types.Panel):
         )
         lights, left_out = gather.panel_light_count(scene, context.view_layer, st.include_sun)
         col.label(text=f"Lights: {lights}" + (f" ({left_out} left out)" if left_out else ""), icon="LIGHT")
-        col.label(text=_world_summary(scene), icon="WORLD")
+        col.label(text=_world_summary(scene, context.view_layer), icon="WORLD")
         layout.prop(st, "resolution_scale")
         layout.prop(st, "tolerance")
         layout.prop(st, "threads")

@@ -31,14 +31,20 @@ def _load_image(path: str, colorspace: str | None = None) -> bpy.types.Image:
 
 
 def apply_sky(
-    scene: bpy.types.Scene, sky_exr: str, report: dict[str, Any], sun: bpy.types.Object | None, update_sun: bool
+    scene: bpy.types.Scene,
+    sky_exr: str,
+    report: dict[str, Any],
+    sun: bpy.types.Object | None,
+    update_sun: bool,
+    view_layer: bpy.types.ViewLayer | None = None,
 ) -> bpy.types.Object | None:
     """World: Environment Texture (equirectangular) → Background → World Output Surface; the Volume link is kept.
+    The world is the one Cycles renders ``view_layer`` with (its World Override, else the scene's).
 
     With ``update_sun`` the sun lamp (created when there is none) gets the sky report's
     ``sun_lamp`` colour, strength (W·m⁻²), angle and rotation. Returns the sun lamp.
     """
-    world = scene.world
+    world = gather.world_of(scene, view_layer) if view_layer is not None else scene.world
     if world is None:
         world = bpy.data.worlds.new("World")
         scene.world = world
@@ -139,31 +145,37 @@ def mute_world_volume(scene: bpy.types.Scene) -> bool:
     haze from it and :func:`unmute_world_volume` restores it. Returns whether a link
     was muted (False: no world volume).
     """
-    world = scene.world
-    if world is None or world.node_tree is None:
-        return False
     muted = False
-    for node in world.node_tree.nodes:
-        if node.bl_idname == "ShaderNodeOutputWorld":
-            for link in node.inputs["Volume"].links:
-                link.is_muted = True
-                muted = True
-    if muted:
-        world[gather.MUTED_VOLUME_PROP] = True
+    for world in gather.worlds_rendered(scene):  # the scene's and the view layers' World Overrides
+        if world.node_tree is None:
+            continue
+        links = [
+            link
+            for node in world.node_tree.nodes
+            if node.bl_idname == "ShaderNodeOutputWorld"
+            for link in node.inputs["Volume"].links
+        ]
+        for link in links:
+            link.is_muted = True
+        if links:
+            world[gather.MUTED_VOLUME_PROP] = True
+            muted = True
     return muted
 
 
 def unmute_world_volume(scene: bpy.types.Scene) -> bool:
     """Undo :func:`mute_world_volume` (only links Tyndall muted). Returns whether it did."""
-    world = scene.world
-    if world is None or world.node_tree is None or not world.get(gather.MUTED_VOLUME_PROP, False):
-        return False
-    for node in world.node_tree.nodes:
-        if node.bl_idname == "ShaderNodeOutputWorld":
-            for link in node.inputs["Volume"].links:
-                link.is_muted = False
-    del world[gather.MUTED_VOLUME_PROP]
-    return True
+    done = False
+    for world in gather.worlds_rendered(scene):
+        if world.node_tree is None or not world.get(gather.MUTED_VOLUME_PROP, False):
+            continue
+        for node in world.node_tree.nodes:
+            if node.bl_idname == "ShaderNodeOutputWorld":
+                for link in node.inputs["Volume"].links:
+                    link.is_muted = False
+        del world[gather.MUTED_VOLUME_PROP]
+        done = True
+    return done
 
 
 def mute_fog_volumes(names: list[str]) -> list[str]:
