@@ -269,7 +269,9 @@ def render_to_files(
 
     Interruptible as :func:`render`: interrupted before its images are complete it writes
     no file; while writing, only the files already complete remain (each is written atomically).
-    ``progress`` as in :func:`render`.
+    ``progress`` as in :func:`render`. The paths are checked before the render: ``out`` must
+    end in ``.exr`` and ``preview`` in ``.png``, none may be a folder (:class:`RenderFailed`
+    naming the path), and missing folders are made.
     """
     tolerance, threads, _ = _checked_overrides(tolerance, threads, None)
     report_json = _render_to_files(
