@@ -361,3 +361,13 @@ def test_numpy_long_double_and_bad_layer_names() -> None:
         s = spot_stage(1000.0)
         s["output"]["tolerance"] = 5e-324
         tyndall.render(s)
+
+
+def test_a_window_beyond_the_mesh_range_is_named() -> None:
+    """A window 1e300 m across said its corners 'enclose no area' (Newell's normal overflowed)."""
+    s = spot_stage(1000.0)
+    big = 1e300
+    s["lights"].append({"type": "window", "name": "w", "direction_to_light": [0, 0.3, 1], "irradiance_w_m2": 1.0,
+                        "aperture": [[-big, -big, 3], [big, -big, 3], [big, big, 3], [-big, big, 3]]})
+    with pytest.raises(tyndall.SceneFormatError, match=r"lights\[1\]\.aperture\[0\]: corner beyond ±1e7 m"):
+        tyndall.render(s)

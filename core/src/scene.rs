@@ -1375,6 +1375,14 @@ impl Validator {
             if !self.vec3(&format!("aperture[{i}]"), *c) {
                 return;
             }
+            if c.iter().any(|x| x.abs() > MAX_MESH_COORDINATE_M) {
+                // (As for mesh vertices: the aperture's edges cut view rays and shadows.)
+                self.fail(
+                    &format!("aperture[{i}]"),
+                    format!("corner beyond ±{MAX_MESH_COORDINATE_M:e} m, the range of mesh vertices"),
+                );
+                return;
+            }
         }
         let pts: Vec<DVec3> = w.aperture.iter().map(|c| DVec3::from(*c)).collect();
         // Newell's normal: robust for any simple polygon.
