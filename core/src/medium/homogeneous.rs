@@ -116,8 +116,8 @@ impl MediumBox {
     }
 
     /// Where, on the ray `o + t·d` (`t > 0`), the length inside the box of the
-    /// segment from `x(t)` to `light` (outside the box) has kinks, pushed to
-    /// `out`. All those segments lie in the plane through the light and the
+    /// segment from `x(t)` to `light` has kinks, pushed to `out` (a light inside
+    /// the box as well: from a point outside, the segment leaves through a side). All those segments lie in the plane through the light and the
     /// ray, which cuts the box in a convex polygon; the length is smooth
     /// while the segment enters and leaves through the same two sides and
     /// kinks where it passes a corner of the polygon, a point where an edge

@@ -265,9 +265,12 @@ impl<const C: usize> PreparedMedium<C> {
     pub fn light_path_kinks(&self, ray: &ViewRay, light: &LightPath<'_>, out: &mut Vec<f64>) {
         match (self, light) {
             (PreparedMedium::Homogeneous(m), LightPath::Point(l)) => {
-                if let Some(b) = m.bounds
-                    && !b.contains(*l)
-                {
+                // Also for a box that holds the light: from a point outside it, the
+                // light path leaves the box through a face, and where it passes a
+                // corner of the section the length inside kinks (a lamp in a box
+                // under world haze: 54 of 576 pixels up to 200× outside their
+                // estimates at tolerance 1e-6 without these cuts).
+                if let Some(b) = m.bounds {
                     b.light_path_kinks(ray.origin, ray.dir, *l, out);
                 }
             }
