@@ -369,6 +369,86 @@ impl<const C: usize> HeightFieldLayer<C> {
         gap.partial_cmp(&(rho_max * self.max_slope() * (1.0 + 1e-9))) != Some(std::cmp::Ordering::Greater)
     }
 
+    /// A lower bound on the height of the segment `a → b` above the boundary,
+    /// `min_s (z − h)(a + s·(b − a))`, m, for a segment that does not cross it
+    /// and starts above it; 0 where it touches, `None` where it starts below or
+    /// crosses. Branch and bound on the segment (where it meets the slab), with the
+    /// crossing finder's Taylor bound: on `[m − r, m + r]`,
+    /// `f ≥ f(m) − |f'(m)|·r − M r²/2`, `|f''| ≤ M = Σ|A|ω²`; an interval is
+    /// done once its bound is at least half the least `f` seen (so the result
+    /// is within a factor 2 of the true least height), or after 512
+    /// evaluations with the bound reached so far (clamped at 0). A segment
+    /// wholly above the crests gets its height above the crest plane.
+    pub fn clearance_between(&self, a: DVec3, b: DVec3) -> Option<f64> {
+        let v = b - a;
+        if !v.length().is_finite() || self.is_below(a) {
+            return None;
+        }
+        let (top, bottom) = (self.top(), self.bottom());
+        // The segment's part in the slab, s ∈ [s0, s1]; above it, z − top bounds z − h.
+        let (mut s0, mut s1) = (0.0f64, 1.0f64);
+        if v.z != 0.0 {
+            let (sa, sb) = ((bottom - a.z) / v.z, (top - a.z) / v.z);
+            s0 = s0.max(sa.min(sb));
+            s1 = s1.min(sa.max(sb));
+        } else if a.z > top || a.z < bottom {
+            s1 = -1.0;
+        }
+        if s1 < s0 {
+            // Wholly above the crests (it starts above the boundary).
+            return Some((a.z.min(b.z) - top).max(0.0));
+        }
+        if a.z.min(b.z) < bottom {
+            return None; // (an end below every trough: below the boundary)
+        }
+        // The bound is taken over the whole segment (the parts above the slab
+        // join the part in it continuously).
+        let (s0, s1) = (0.0, 1.0);
+        let mut best = f64::INFINITY;
+        let m_bound: f64 = self
+            .waves
+            .iter()
+            .map(|w| {
+                let om = w.kx * v.x + w.ky * v.y;
+                w.amplitude.abs() * om * om
+            })
+            .sum();
+        let f_df = |s: f64| -> (f64, f64) {
+            let (x, y, z) = (a.x + v.x * s, a.y + v.y * s, a.z + v.z * s);
+            let mut h = self.base;
+            let mut dh = 0.0;
+            for w in &self.waves {
+                let (sn, cs) = (w.kx * x + w.ky * y + w.phase).sin_cos();
+                h += w.amplitude * sn;
+                dh += w.amplitude * cs * (w.kx * v.x + w.ky * v.y);
+            }
+            (z - h, v.z - dh)
+        };
+        let mut least_seen = f64::INFINITY;
+        let mut stack: SmallVec<[(f64, f64); 32]> = smallvec![(s0, s1)];
+        let mut evals = 0;
+        while let Some((lo, hi)) = stack.pop() {
+            let (m, r) = (0.5 * (lo + hi), 0.5 * (hi - lo));
+            let (f, df) = f_df(m);
+            evals += 1;
+            if f.is_nan() || f < 0.0 {
+                return None;
+            }
+            if f == 0.0 {
+                return Some(0.0);
+            }
+            least_seen = least_seen.min(f);
+            let bound = f - df.abs() * r - 0.5 * m_bound * r * r;
+            if bound >= 0.5 * least_seen || r <= 1e-12 * (s1 - s0).max(1e-300) || evals >= 512 {
+                best = best.min(bound);
+                continue;
+            }
+            stack.push((lo, m));
+            stack.push((m, hi));
+        }
+        Some(best.max(0.0))
+    }
+
     /// Whether the upper side has any extinction.
     pub fn upper_is_vacuum(&self) -> bool {
         self.upper.extinction.iter().all(|v| *v == 0.0)

@@ -72,7 +72,9 @@ use crate::light::window::WindowSource;
 use crate::light::{PointSource, ray_cone_intervals, ray_elliptic_cone_intervals};
 use crate::medium::homogeneous::MediumBox;
 use crate::medium::{LightPath, PreparedMedium, ViewRay};
-use crate::numeric::{integrate_adaptive, integrate_adaptive_cut_at_changes, integrate_adaptive_nested, integrate_adaptive_nested_from_g3};
+use crate::numeric::{
+    integrate_adaptive, integrate_adaptive_cut_at_changes_certified, integrate_adaptive_nested, integrate_adaptive_nested_from_g3,
+};
 use glam::DVec3;
 use rayon::prelude::*;
 use std::f64::consts::FRAC_PI_2;
@@ -1191,6 +1193,35 @@ impl<const C: usize> StageLights<C> {
             // the crests, eyes 20 m away: 1.5359e-113 ± 1.4e-122 at tolerance
             // 1e-9 against 1.5354e-113 before.)
             let grazing = p.casts_shadows && media.iter().any(|m| m.light_path_may_graze(o, d, a, b, l.position));
+            // Light paths clear of the wavy boundaries: how high above them
+            // (the least over the layers; ∞ where a path crosses one, which
+            // the crossings' signature covers). A crest can cut the paths
+            // between two nodes only where that height falls to 0, and it
+            // changes with `t` no faster than `1 + max slope` (a point of the
+            // path moves by `(1 − s)·dt`, the boundary under it by at most
+            // `slope·(1 − s)·dt`), with `u` no faster than that times
+            // `dt/du = h/cos²u`.
+            let clearance = |u: f64| -> f64 {
+                let x = o + d * (tc + h * u.tan());
+                media
+                    .iter()
+                    .filter_map(|m| match m {
+                        PreparedMedium::HeightFieldLayer(hf) => Some(hf.clearance_between(x, l.position).unwrap_or(f64::INFINITY)),
+                        _ => None,
+                    })
+                    .fold(f64::INFINITY, f64::min)
+            };
+            let steepest = media
+                .iter()
+                .filter_map(|m| match m {
+                    PreparedMedium::HeightFieldLayer(hf) => Some(hf.max_slope()),
+                    _ => None,
+                })
+                .fold(0.0f64, f64::max);
+            let lipschitz = |u0: f64, u1: f64| -> f64 {
+                let c = u0.abs().max(u1.abs()).cos();
+                (1.0 + steepest) * h / (c * c)
+            };
             for wdw in bounds.windows(2) {
                 if wdw[1] <= wdw[0] {
                     continue;
@@ -1198,7 +1229,16 @@ impl<const C: usize> StageLights<C> {
                 let r = if fast {
                     integrate_window(plain_integrand, wdw[0], wdw[1], tolerance, smooth)
                 } else if grazing {
-                    integrate_adaptive_cut_at_changes(integrand_and_crossings, wdw[0], wdw[1], 1e-300, tolerance, 400)
+                    integrate_adaptive_cut_at_changes_certified(
+                        integrand_and_crossings,
+                        clearance,
+                        lipschitz,
+                        wdw[0],
+                        wdw[1],
+                        1e-300,
+                        tolerance,
+                        400,
+                    )
                 } else {
                     integrate_window(integrand, wdw[0], wdw[1], tolerance, false)
                 };
