@@ -198,6 +198,48 @@ fn height_field_optical_depths_match_brute_force() {
     );
 }
 
+#[test]
+fn height_field_clearance_bounds_the_least_height_above_the_boundary() {
+    // Segments from points above the boundary (in the slab and above it) to
+    // lamps above the crests: the bound is never above the least height found
+    // by dense sampling (10⁵ points, with their own error of |f'|·step), and
+    // within a factor 2 of it, less the sampling's own slack; a crossing
+    // segment has none.
+    let m = layer([370.0, 0.0], [0.0, 0.0], 0.0, 0.0, 1e-6);
+    let mut rng = Rng(11);
+    let (mut clear, mut crossing) = (0, 0);
+    for _ in 0..400 {
+        let (x, y) = (rng.range(-3.0, 3.0), rng.range(-3.0, 3.0));
+        let a = DVec3::new(x, y, ref_height(x, y) + rng.range(1e-4, 0.2));
+        let b = DVec3::new(rng.range(-8.0, 8.0), rng.range(-8.0, 8.0), ref_top() + rng.range(0.01, 1.0));
+        let n = 100_000;
+        let step = (b - a).length() / n as f64;
+        let least = (0..=n)
+            .map(|k| field_g(a + (b - a) * (k as f64 / n as f64)))
+            .fold(f64::INFINITY, f64::min);
+        match m.clearance_between(a, b) {
+            Some(c) => {
+                clear += 1;
+                let slack = 2.0 * step; // |f'| ≤ 1 + slope < 2 per unit length here
+                assert!(least > -slack, "a clear segment crosses: {least}");
+                assert!(c <= least + slack, "bound {c} above the least height {least}");
+                // (Wholly above the crests the bound is the height above the crest plane.)
+                let expected = if a.z.min(b.z) > ref_top() {
+                    a.z.min(b.z) - ref_top()
+                } else {
+                    0.5 * least
+                };
+                assert!(c >= expected - slack, "bound {c} far below the least height {least}");
+            }
+            None => {
+                crossing += 1;
+                assert!(least < 0.0, "no bound for a clear segment (least height {least})");
+            }
+        }
+    }
+    assert!(clear > 50 && crossing > 50, "{clear} clear, {crossing} crossing");
+}
+
 // ------------------------------------------------------------------ height field: sun in-scatter
 
 /// Reference sun + ambient single scattering along `[0, s_max]` with `panels`
