@@ -147,20 +147,26 @@ def mute_world_volume(scene: bpy.types.Scene) -> bool:
     """
     muted = False
     for world in gather.worlds_rendered(scene):  # the scene's and the view layers' World Overrides
-        if world.node_tree is None:
-            continue
-        links = [
-            link
-            for node in world.node_tree.nodes
-            if node.bl_idname == "ShaderNodeOutputWorld"
-            for link in node.inputs["Volume"].links
-        ]
-        for link in links:
-            link.is_muted = True
-        if links:
-            world[gather.MUTED_VOLUME_PROP] = True
-            muted = True
+        muted |= _mute_volume(world, "ShaderNodeOutputWorld")
     return muted
+
+
+def _mute_volume(owner: bpy.types.World | bpy.types.Material, output: str) -> bool:
+    """Mute the links into the Volume input of ``owner``'s ``output`` nodes and mark ``owner``
+    (``gather`` still reads a marked volume). Returns whether there were any."""
+    if owner.node_tree is None:
+        return False
+    links = [
+        link
+        for node in owner.node_tree.nodes
+        if node.bl_idname == output
+        for link in node.inputs["Volume"].links
+    ]
+    for link in links:
+        link.is_muted = True
+    if links:
+        owner[gather.MUTED_VOLUME_PROP] = True
+    return bool(links)
 
 
 def unmute_world_volume(scene: bpy.types.Scene) -> bool:
@@ -185,18 +191,7 @@ def mute_fog_volumes(names: list[str]) -> list[str]:
     muted = []
     for name in names:
         material = bpy.data.materials.get(name)
-        if material is None or material.node_tree is None:
-            continue
-        links = [
-            link
-            for node in material.node_tree.nodes
-            if node.bl_idname == "ShaderNodeOutputMaterial"
-            for link in node.inputs["Volume"].links
-        ]
-        for link in links:
-            link.is_muted = True
-        if links:
-            material[gather.MUTED_VOLUME_PROP] = True
+        if material is not None and _mute_volume(material, "ShaderNodeOutputMaterial"):
             muted.append(name)
     return muted
 

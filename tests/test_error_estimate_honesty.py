@@ -77,6 +77,18 @@ def test_error_layer_bounds_the_error_on_long_windows(case: str) -> None:
     assert abs(value - ref) <= tol * ref
 
 
+def _piecewise_gauss(f: Callable[[np.ndarray], np.ndarray], ends: list[float]) -> float:
+    """∫ f over [ends[0], ends[-1]]: 399 Gauss–Legendre panels of 24 nodes between each two ends
+    (f smooth between them)."""
+    nodes, weights = np.polynomial.legendre.leggauss(24)
+    total = 0.0
+    for e0, e1 in zip(ends[:-1], ends[1:], strict=True):
+        edges = np.linspace(e0, e1, 400)
+        for u0, u1 in zip(edges[:-1], edges[1:], strict=True):
+            total += 0.5 * (u1 - u0) * float(weights @ f(0.5 * (u1 - u0) * nodes + 0.5 * (u0 + u1)))
+    return total
+
+
 def _box_length(a: np.ndarray, b: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     """Length inside the box [lo, hi] of each segment a[i] → b (slab method)."""
     v = b - a
@@ -134,20 +146,13 @@ def test_a_lamp_inside_a_box_seen_from_outside_it() -> None:
     h = float(np.linalg.norm(cam + tc * d - light))
     kinks = [math.atan((t - tc) / h) for t in _section_kinks(cam, d, light, lo, hi)]
     assert len(kinks) == 2  # the ray passes above the box; its light paths leave by two faces
-    nodes, weights = np.polynomial.legendre.leggauss(24)
-    ends = [math.atan(-tc / h), *kinks, math.pi / 2]
-    ref = 0.0
-    for e0, e1 in zip(ends[:-1], ends[1:], strict=True):
-        edges = np.linspace(e0, e1, 400)
-        for u0, u1 in zip(edges[:-1], edges[1:], strict=True):
-            u = 0.5 * (u1 - u0) * nodes + 0.5 * (u0 + u1)
-            t = tc + h * np.tan(u)
-            r = h / np.cos(u)
-            x = cam + t[:, None] * d
-            inside = _box_length(x, light, lo, hi)
-            f = sigma_world / (4 * math.pi) * power / (4 * math.pi) / h
-            f = f * np.exp(-sigma_world * (t + r) - sigma_box * inside)
-            ref += 0.5 * (u1 - u0) * float(weights @ f)
+    def integrand(u: np.ndarray) -> np.ndarray:
+        t, r = tc + h * np.tan(u), h / np.cos(u)
+        inside = _box_length(cam + t[:, None] * d, light, lo, hi)
+        f = sigma_world / (4 * math.pi) * power / (4 * math.pi) / h
+        return f * np.exp(-sigma_world * (t + r) - sigma_box * inside)
+
+    ref = _piecewise_gauss(integrand, [math.atan(-tc / h), *kinks, math.pi / 2])
     layers, _ = tyndall.render(scene)
     value, estimate = float(layers["inscatter"][0, 0, 0]), float(layers["error"][0, 0, 0])
     assert abs(value - ref) <= estimate + 2.0**-23 * ref, (value, ref, estimate)
@@ -196,18 +201,13 @@ def test_usd_shaping_soft_cone_past_its_axis() -> None:
         cuts += [float(ts[k] + (ts[k + 1] - ts[k]) * (level - th[k]) / (th[k + 1] - th[k])) for k in s]
     assert math.degrees(th.min()) > math.degrees(start)  # the bend lies inside the smoothstep
     ends = sorted([math.atan(-tc / h), *(math.atan((t - tc) / h) for t in cuts), math.pi / 2])
-    nodes, weights = np.polynomial.legendre.leggauss(24)
-    ref = 0.0
-    for e0, e1 in zip(ends[:-1], ends[1:], strict=True):
-        edges = np.linspace(e0, e1, 400)
-        for u0, u1 in zip(edges[:-1], edges[1:], strict=True):
-            u = 0.5 * (u1 - u0) * nodes + 0.5 * (u0 + u1)
-            t = tc + h * np.tan(u)
-            x = np.clip((theta(t) - start) / (cutoff - start), 0.0, 1.0)
-            cone = np.where(theta(t) > cutoff, 0.0, 1.0 - x * x * (3.0 - 2.0 * x))
-            r = h / np.cos(u)
-            f = sigma / (4 * math.pi) * power / (4 * math.pi) * cone * np.exp(-sigma * (t + r)) / h
-            ref += 0.5 * (u1 - u0) * float(weights @ f)
+    def integrand(u: np.ndarray) -> np.ndarray:
+        t, r = tc + h * np.tan(u), h / np.cos(u)
+        x = np.clip((theta(t) - start) / (cutoff - start), 0.0, 1.0)
+        cone = np.where(theta(t) > cutoff, 0.0, 1.0 - x * x * (3.0 - 2.0 * x))
+        return sigma / (4 * math.pi) * power / (4 * math.pi) * cone * np.exp(-sigma * (t + r)) / h
+
+    ref = _piecewise_gauss(integrand, ends)
     layers, _ = tyndall.render(scene)
     value, estimate = float(layers["inscatter"][0, 0, 0]), float(layers["error"][0, 0, 0])
     assert abs(value - ref) <= estimate + 2.0**-23 * ref, (value, ref, estimate)
