@@ -650,11 +650,11 @@ pub fn integrate_adaptive_cut_at_changes_certified<const N: usize>(
                     // (k = 1 … 9), resolve it.
                     let mut ends: SmallVec<[f64; 24]> = SmallVec::new();
                     ends.extend([pa, hi, pb]);
-                    let mut f = 1.0;
+                    let mut frac = 1.0;
                     for _ in 0..CHANGE_GRADES {
-                        f *= 0.25;
-                        ends.push(hi - (hi - pa) * f);
-                        ends.push(hi + (pb - hi) * f);
+                        frac *= 0.25;
+                        ends.push(hi - (hi - pa) * frac);
+                        ends.push(hi + (pb - hi) * frac);
                     }
                     ends.sort_by(f64::total_cmp);
                     ends.dedup();
@@ -693,22 +693,12 @@ fn hidden_change<const N: usize>(
 ) -> (Option<(f64, f64, u64)>, usize) {
     let signature = nodes[0].1;
     let mut spent = 0usize;
-    // The nodes and the panel's ends, with their clearances (an end is
-    // evaluated only when the nodes beside it have a finite one).
-    let mut points: Vec<(f64, f64)> = Vec::with_capacity(17);
-    for &(t, _) in nodes {
-        let c = clearance(t);
-        spent += 1;
-        if !c.is_finite() {
-            return (None, spent); // no bound here: as the nodes see it
-        }
-        points.push((t, c));
-    }
+    // The panel's ends first: a change already cut at (the panels end there)
+    // may have either signature, and the gap beside it is not searched; any
+    // other end whose signature differs has a change between it and the
+    // nearest node (the nodes do not reach a panel's ends).
+    let mut ends: SmallVec<[f64; 2]> = SmallVec::new();
     for end in [pa, pb] {
-        // A change already cut at (the panels end there) may have either
-        // signature: the gap beside it is not searched. Any other end whose
-        // signature differs has a change between it and the nearest node
-        // (the nodes do not reach a panel's ends).
         if cuts.contains(&end) {
             continue;
         }
@@ -722,8 +712,18 @@ fn hidden_change<const N: usize>(
             };
             return (Some(found), spent);
         }
-        points.push((end, clearance(end)));
+        ends.push(end);
+    }
+    // Then the nodes and those ends with their clearances; where one has no
+    // bound, the panel is taken as its points see it.
+    let mut points: Vec<(f64, f64)> = Vec::with_capacity(17);
+    for t in nodes.iter().map(|n| n.0).chain(ends) {
+        let c = clearance(t);
         spent += 1;
+        if !c.is_finite() {
+            return (None, spent);
+        }
+        points.push((t, c));
     }
     points.sort_by(|x, y| x.0.total_cmp(&y.0));
     let floor = 1e-9 * (pb - pa);
