@@ -677,22 +677,25 @@ fn hidden_change<const N: usize>(
 ) -> (Option<(f64, f64, u64)>, usize) {
     let signature = nodes[0].1;
     let mut spent = 0usize;
-    // The panel's ends first: a change already cut at (the panels end there)
-    // may have either signature, and the gap beside it is not searched; any
-    // other end whose signature differs has a change between it and the
-    // nearest node (the nodes do not reach a panel's ends).
+    // The panel's ends first: one whose signature differs has a change
+    // between it and the nearest node (the nodes do not reach a panel's ends).
     let mut ends: SmallVec<[f64; 2]> = SmallVec::new();
-    for end in [pa, pb] {
-        if cuts.contains(&end) {
-            continue;
-        }
+    for (end, left) in [(pa, true), (pb, false)] {
+        // At a change already cut at, its side's signature is looked at just
+        // inside the panel (another change may follow right after it).
+        let end = if cuts.contains(&end) {
+            let inward = 1e-12 * (pb - pa);
+            if left { pa + inward } else { pb - inward }
+        } else {
+            end
+        };
         let (_, s) = f(end);
         spent += 1;
         if s != signature {
-            let found = if end == pa {
-                (pa, nodes[0].0, s)
+            let found = if left {
+                (end, nodes[0].0, s)
             } else {
-                (nodes[14].0, pb, signature)
+                (nodes[14].0, end, signature)
             };
             return (Some(found), spent);
         }
