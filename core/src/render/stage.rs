@@ -880,11 +880,13 @@ impl<const C: usize> StageLights<C> {
             }
         }
         // A shape smooth in θ rather than cos θ (UsdLux shaping's smoothstep in
-        // the angle): θ(t) = acos(cos θ(t)) bends sharply where the ray passes
-        // closest to the axis, and a panel across that bend underestimated its
-        // error (43× at tolerance 1e-4, softness 0.86). cos θ(t) = (p·a + t·d·a)/|p + t·d|,
+        // the angle; tables and IES cells interpolated in θ; Nishita's dots):
+        // θ(t) = acos(cos θ(t)) bends sharply where the ray passes closest to
+        // the axis, and a panel across that bend underestimated its error (43×
+        // at tolerance 1e-4, UsdLux softness 0.86). cos θ(t) = (p·a + t·d·a)/|p + t·d|,
         // p = o − x_L, is largest where (d·a)|p|² − (p·a)(p·d) + t((d·a)(p·d) − p·a) = 0.
-        if matches!(l.shape, crate::light::Shape::UsdShaping { .. }) {
+        // (Blender's spot and the isotropic lamp are smooth in cos θ: no cut.)
+        if !l.smooth_between_kinks() {
             let pv = o - l.position;
             let (pa, pd, da) = (pv.dot(l.frame.axis), pv.dot(d), d.dot(l.frame.axis));
             let den = da * pd - pa;
