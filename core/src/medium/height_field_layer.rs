@@ -19,6 +19,10 @@
 //!   a root iff `f(a)`, `f(b)` differ in sign; it is refined by safeguarded
 //!   Newton–bisection to full precision;
 //! * else if `|f(m)| > |f'(m)| r + M r²/2`, Taylor's bound excludes a root;
+//! * else if the parabola `f(m) + f'(m) s + (f''(m) − M₃ r/3) s²/2`,
+//!   `|f'''| ≤ M₃ = Σ |A_k ω_k³|`, stays on the side of `f(m)` on `|s| ≤ r`,
+//!   so does `f` (a ray just over a crest, where `f` is convex: the first
+//!   test needs intervals as short as `√(f/M)` there, this one does not);
 //! * else the interval is halved.
 //!
 //! Both tests are rigorous bounds (up to rounding of `f`), so no crossing is
@@ -186,6 +190,27 @@ impl<const C: usize> Search<'_, C> {
         (z - h, d.z - dh)
     }
 
+    /// `(f, f', f'')` at `t`: `f'' = Σ A_k ω_k² sin(·)` (the boundary's
+    /// curvature along the ray, negated), for the convex Taylor test of
+    /// [`Self::isolate`].
+    #[inline]
+    fn f_df_d2f(&mut self, t: f64) -> (f64, f64, f64) {
+        self.evals += 1;
+        let (o, d) = (self.o, self.d);
+        let (x, y, z) = (o.x + d.x * t, o.y + d.y * t, o.z + d.z * t);
+        let mut h = self.layer.base;
+        let mut dh = 0.0;
+        let mut d2f = 0.0;
+        for w in &self.layer.waves {
+            let (s, c) = (w.kx * x + w.ky * y + w.phase).sin_cos();
+            let om = w.kx * d.x + w.ky * d.y;
+            h += w.amplitude * s;
+            dh += w.amplitude * c * om;
+            d2f += w.amplitude * s * om * om;
+        }
+        (z - h, d.z - dh, d2f)
+    }
+
     /// Root of `f` in `[a, b]` where `f` is monotone and changes sign;
     /// `mid` is `(f, f')` at the midpoint, where the iteration starts.
     /// Newton's error after a step `s` is at most `|f''|/(2|f'|)·s²` (up to
@@ -228,7 +253,7 @@ impl<const C: usize> Search<'_, C> {
     /// Roots of `f` in `(a, b)`, appended in increasing order, each with the
     /// sides just before and after it (`f < 0` at the ends of the interval
     /// that held it).
-    fn isolate(&mut self, a: f64, b: f64, fa: f64, fb: f64, m_bound: f64, roots: &mut SmallVec<[Root; 8]>) {
+    fn isolate(&mut self, a: f64, b: f64, fa: f64, fb: f64, (m_bound, m3_bound): (f64, f64), roots: &mut SmallVec<[Root; 8]>) {
         let mut stack: SmallVec<[(f64, f64, f64, f64); 32]> = smallvec![(a, b, fa, fb)];
         while let Some((a, b, fa, fb)) = stack.pop() {
             let change = (fa < 0.0) != (fb < 0.0);
@@ -245,7 +270,7 @@ impl<const C: usize> Search<'_, C> {
             }
             let m = 0.5 * (a + b);
             let r = 0.5 * (b - a);
-            let (fm, dfm) = self.f_df(m);
+            let (fm, dfm, d2fm) = self.f_df_d2f(m);
             if dfm.abs() > m_bound * r {
                 if change {
                     let t = self.refine(a, b, fa, (fm, dfm), m_bound);
@@ -260,10 +285,34 @@ impl<const C: usize> Search<'_, C> {
             if fm.abs() > dfm.abs() * r + 0.5 * m_bound * r * r {
                 continue;
             }
+            // The same with the curvature at the midpoint: where the ray
+            // passes just over a crest (or under a trough) `f` is convex
+            // there (concave), and its least value, not `|f'| r + M r²/2`
+            // below `f(m)`, decides (a light path grazing the crests: most
+            // of the evaluations of a low lamp over dry ice).
+            let sign = if fm > 0.0 { 1.0 } else { -1.0 };
+            if least_on_interval(sign * fm, sign * dfm, sign * d2fm, m3_bound, r) > 0.0 {
+                continue;
+            }
             // Right half first: the left half is popped (and its roots pushed) first.
             stack.push((m, b, fm, fb));
             stack.push((a, m, fa, fm));
         }
+    }
+}
+
+/// A lower bound on `f` over `[m − r, m + r]` from `f(m)`, `f'(m)`,
+/// `f''(m)` and `|f'''| ≤ m3`: Taylor with the integral remainder gives
+/// `f(m + s) ≥ f(m) + f'(m) s + f''(m) s²/2 − m3 |s|³/6
+/// ≥ f(m) + f'(m) s + c s²/2`, `c = f''(m) − m3 r/3`, for `|s| ≤ r`; the
+/// least value of that parabola on the interval (its vertex where `c > 0`
+/// and the vertex lies inside, else the lower end).
+fn least_on_interval(f: f64, df: f64, d2f: f64, m3: f64, r: f64) -> f64 {
+    let c = d2f - m3 * r / 3.0;
+    if c > 0.0 && df.abs() < c * r {
+        f - df * df / (2.0 * c)
+    } else {
+        f - df.abs() * r + 0.5 * c * r * r
     }
 }
 
@@ -511,14 +560,17 @@ impl<const C: usize> HeightFieldLayer<C> {
             evals: 0,
         };
         let mut m_bound = 0.0f64;
+        let mut m3_bound = 0.0f64;
         let mut omega_max = 0.0f64;
         for w in &self.waves {
             let om = w.kx * d.x + w.ky * d.y;
             m_bound += w.amplitude.abs() * om * om;
+            m3_bound += w.amplitude.abs() * (om * om * om).abs();
             omega_max = omega_max.max(om.abs());
         }
         // A little slack for rounding in the bounds.
         m_bound *= 1.0 + 1e-12;
+        m3_bound *= 1.0 + 1e-12;
         let chunk = if omega_max > 0.0 { 256.0 / omega_max } else { f64::INFINITY };
         let (mut below_len, mut above_len) = (0.0f64, 0.0f64);
         for piece in out.iter() {
@@ -540,7 +592,7 @@ impl<const C: usize> HeightFieldLayer<C> {
             }
             let (fe, _) = s.f_df(e);
             roots.clear();
-            s.isolate(t, e, ft, fe, m_bound, &mut roots);
+            s.isolate(t, e, ft, fe, (m_bound, m3_bound), &mut roots);
             // A piece's side: the sign of `f` at its two ends as the search
             // saw them (just after the root that opens it, just before the
             // one that closes it) when they agree, else at its middle. They
