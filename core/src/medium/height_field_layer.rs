@@ -422,8 +422,9 @@ impl<const C: usize> HeightFieldLayer<C> {
     /// `min_s (z − h)(a + s·(b − a))`, m, for a segment that does not cross it
     /// and starts above it; 0 where it touches, `None` where it starts below or
     /// crosses. Branch and bound on the segment (where it meets the slab), with the
-    /// crossing finder's Taylor bound: on `[m − r, m + r]`,
-    /// `f ≥ f(m) − |f'(m)|·r − M r²/2`, `|f''| ≤ M = Σ|A|ω²`; an interval is
+    /// crossing finder's Taylor bounds: on `[m − r, m + r]`,
+    /// `f ≥ f(m) − |f'(m)|·r − M r²/2`, `|f''| ≤ M = Σ|A|ω²`, or the convex
+    /// one of [`least_on_interval`], whichever is higher; an interval is
     /// done once its bound is at least half the least `f` seen (so the result
     /// is within a factor 2 of the true least height), or after 512
     /// evaluations with the bound reached so far (clamped at 0). A segment
@@ -454,31 +455,30 @@ impl<const C: usize> HeightFieldLayer<C> {
         // join the part in it continuously).
         let (s0, s1) = (0.0, 1.0);
         let mut best = f64::INFINITY;
-        let m_bound: f64 = self
-            .waves
-            .iter()
-            .map(|w| {
-                let om = w.kx * v.x + w.ky * v.y;
-                w.amplitude.abs() * om * om
-            })
-            .sum();
-        let f_df = |s: f64| -> (f64, f64) {
+        let (m_bound, m3_bound) = self.waves.iter().fold((0.0f64, 0.0f64), |(m2, m3), w| {
+            let om = w.kx * v.x + w.ky * v.y;
+            (m2 + w.amplitude.abs() * om * om, m3 + (w.amplitude * om * om * om).abs())
+        });
+        let f_df = |s: f64| -> (f64, f64, f64) {
             let (x, y, z) = (a.x + v.x * s, a.y + v.y * s, a.z + v.z * s);
             let mut h = self.base;
             let mut dh = 0.0;
+            let mut d2f = 0.0;
             for w in &self.waves {
                 let (sn, cs) = (w.kx * x + w.ky * y + w.phase).sin_cos();
+                let om = w.kx * v.x + w.ky * v.y;
                 h += w.amplitude * sn;
-                dh += w.amplitude * cs * (w.kx * v.x + w.ky * v.y);
+                dh += w.amplitude * cs * om;
+                d2f += w.amplitude * sn * om * om;
             }
-            (z - h, v.z - dh)
+            (z - h, v.z - dh, d2f)
         };
         let mut least_seen = f64::INFINITY;
         let mut stack: SmallVec<[(f64, f64); 32]> = smallvec![(s0, s1)];
         let mut evals = 0;
         while let Some((lo, hi)) = stack.pop() {
             let (m, r) = (0.5 * (lo + hi), 0.5 * (hi - lo));
-            let (f, df) = f_df(m);
+            let (f, df, d2f) = f_df(m);
             evals += 1;
             if f.is_nan() || f < 0.0 {
                 return None;
@@ -487,7 +487,7 @@ impl<const C: usize> HeightFieldLayer<C> {
                 return Some(0.0);
             }
             least_seen = least_seen.min(f);
-            let bound = f - df.abs() * r - 0.5 * m_bound * r * r;
+            let bound = (f - df.abs() * r - 0.5 * m_bound * r * r).max(least_on_interval(f, df, d2f, m3_bound, r));
             if bound >= 0.5 * least_seen || r <= 1e-12 * (s1 - s0).max(1e-300) || evals >= 512 {
                 best = best.min(bound);
                 continue;
