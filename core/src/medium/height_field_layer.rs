@@ -177,38 +177,16 @@ struct Search<'a, const C: usize> {
 impl<const C: usize> Search<'_, C> {
     #[inline]
     fn f_df(&mut self, t: f64) -> (f64, f64) {
-        self.evals += 1;
-        let (o, d) = (self.o, self.d);
-        let (x, y, z) = (o.x + d.x * t, o.y + d.y * t, o.z + d.z * t);
-        let mut h = self.layer.base;
-        let mut dh = 0.0;
-        for w in &self.layer.waves {
-            let (s, c) = (w.kx * x + w.ky * y + w.phase).sin_cos();
-            h += w.amplitude * s;
-            dh += w.amplitude * c * (w.kx * d.x + w.ky * d.y);
-        }
-        (z - h, d.z - dh)
+        let (f, df, _) = self.f_df_d2f(t);
+        (f, df)
     }
 
-    /// `(f, f', f'')` at `t`: `f'' = Σ A_k ω_k² sin(·)` (the boundary's
-    /// curvature along the ray, negated), for the convex Taylor test of
-    /// [`Self::isolate`].
+    /// `(f, f', f'')` at `t` ([`HeightFieldLayer::height_above_along`]), for
+    /// the convex Taylor test of [`Self::isolate`].
     #[inline]
     fn f_df_d2f(&mut self, t: f64) -> (f64, f64, f64) {
         self.evals += 1;
-        let (o, d) = (self.o, self.d);
-        let (x, y, z) = (o.x + d.x * t, o.y + d.y * t, o.z + d.z * t);
-        let mut h = self.layer.base;
-        let mut dh = 0.0;
-        let mut d2f = 0.0;
-        for w in &self.layer.waves {
-            let (s, c) = (w.kx * x + w.ky * y + w.phase).sin_cos();
-            let om = w.kx * d.x + w.ky * d.y;
-            h += w.amplitude * s;
-            dh += w.amplitude * c * om;
-            d2f += w.amplitude * s * om * om;
-        }
-        (z - h, d.z - dh, d2f)
+        self.layer.height_above_along(self.o, self.d, t)
     }
 
     /// Root of `f` in `[a, b]` where `f` is monotone and changes sign;
@@ -328,6 +306,25 @@ impl<const C: usize> HeightFieldLayer<C> {
             tolerance,
             id: NEXT_ID.fetch_add(1, Ordering::Relaxed),
         }
+    }
+
+    /// Height above the boundary along `o + t·d` and its first two
+    /// derivatives in `t`: `f = z − h`, `f' = d_z − Σ A_k ω_k cos(·)`,
+    /// `f'' = Σ A_k ω_k² sin(·)`, `ω_k = k_x,k d_x + k_y,k d_y`.
+    #[inline]
+    fn height_above_along(&self, o: DVec3, d: DVec3, t: f64) -> (f64, f64, f64) {
+        let (x, y, z) = (o.x + d.x * t, o.y + d.y * t, o.z + d.z * t);
+        let mut h = self.base;
+        let mut dh = 0.0;
+        let mut d2f = 0.0;
+        for w in &self.waves {
+            let (s, c) = (w.kx * x + w.ky * y + w.phase).sin_cos();
+            let om = w.kx * d.x + w.ky * d.y;
+            h += w.amplitude * s;
+            dh += w.amplitude * c * om;
+            d2f += w.amplitude * s * om * om;
+        }
+        (z - h, d.z - dh, d2f)
     }
 
     /// Boundary height at `(x, y)`, m.
@@ -459,20 +456,7 @@ impl<const C: usize> HeightFieldLayer<C> {
             let om = w.kx * v.x + w.ky * v.y;
             (m2 + w.amplitude.abs() * om * om, m3 + (w.amplitude * om * om * om).abs())
         });
-        let f_df = |s: f64| -> (f64, f64, f64) {
-            let (x, y, z) = (a.x + v.x * s, a.y + v.y * s, a.z + v.z * s);
-            let mut h = self.base;
-            let mut dh = 0.0;
-            let mut d2f = 0.0;
-            for w in &self.waves {
-                let (sn, cs) = (w.kx * x + w.ky * y + w.phase).sin_cos();
-                let om = w.kx * v.x + w.ky * v.y;
-                h += w.amplitude * sn;
-                dh += w.amplitude * cs * om;
-                d2f += w.amplitude * sn * om * om;
-            }
-            (z - h, v.z - dh, d2f)
-        };
+        let f_df = |s: f64| self.height_above_along(a, v, s);
         let mut least_seen = f64::INFINITY;
         let mut stack: SmallVec<[(f64, f64); 32]> = smallvec![(s0, s1)];
         let mut evals = 0;
