@@ -260,7 +260,10 @@ impl<const C: usize> Search<'_, C> {
                 }
                 continue;
             }
-            if fm.abs() > dfm.abs() * r + 0.5 * m_bound * r * r {
+            // (Where the ends' signs differ there is a root: no exclusion,
+            // which could only come from rounding and would break the
+            // crossings' parity.)
+            if !change && fm.abs() > dfm.abs() * r + 0.5 * m_bound * r * r {
                 continue;
             }
             // The same with the curvature at the midpoint: where the ray
@@ -269,7 +272,7 @@ impl<const C: usize> Search<'_, C> {
             // below `f(m)`, decides (a light path grazing the crests: most
             // of the evaluations of a low lamp over dry ice).
             let sign = if fm > 0.0 { 1.0 } else { -1.0 };
-            if least_on_interval(sign * fm, sign * dfm, sign * d2fm, m3_bound, r) > 0.0 {
+            if !change && least_on_interval(sign * fm, sign * dfm, sign * d2fm, (m_bound, m3_bound), r) > 0.0 {
                 continue;
             }
             // Right half first: the left half is popped (and its roots pushed) first.
@@ -280,13 +283,15 @@ impl<const C: usize> Search<'_, C> {
 }
 
 /// A lower bound on `f` over `[m − r, m + r]` from `f(m)`, `f'(m)`,
-/// `f''(m)` and `|f'''| ≤ m3`: Taylor with the integral remainder gives
+/// `f''(m)`, `|f''| ≤ m2` and `|f'''| ≤ m3`: Taylor with the integral remainder gives
 /// `f(m + s) ≥ f(m) + f'(m) s + f''(m) s²/2 − m3 |s|³/6
 /// ≥ f(m) + f'(m) s + c s²/2`, `c = f''(m) − m3 r/3`, for `|s| ≤ r`; the
 /// least value of that parabola on the interval (its vertex where `c > 0`
 /// and the vertex lies inside, else the lower end).
-fn least_on_interval(f: f64, df: f64, d2f: f64, m3: f64, r: f64) -> f64 {
-    let c = d2f - m3 * r / 3.0;
+fn least_on_interval(f: f64, df: f64, d2f: f64, (m2, m3): (f64, f64), r: f64) -> f64 {
+    // (With `1e-12·M` of slack for the rounding of `f''`, as the
+    // second-order test has on `M`.)
+    let c = d2f - m3 * r / 3.0 - 1e-12 * m2;
     if c > 0.0 && df.abs() < c * r {
         f - df * df / (2.0 * c)
     } else {
@@ -471,7 +476,7 @@ impl<const C: usize> HeightFieldLayer<C> {
                 return Some(0.0);
             }
             least_seen = least_seen.min(f);
-            let bound = (f - df.abs() * r - 0.5 * m_bound * r * r).max(least_on_interval(f, df, d2f, m3_bound, r));
+            let bound = (f - df.abs() * r - 0.5 * m_bound * r * r).max(least_on_interval(f, df, d2f, (m_bound, m3_bound), r));
             if bound >= 0.5 * least_seen || r <= 1e-12 * (s1 - s0).max(1e-300) || evals >= 512 {
                 best = best.min(bound);
                 continue;
