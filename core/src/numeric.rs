@@ -571,7 +571,10 @@ const CERTIFICATE_BUDGET: usize = 4096;
 /// positive and no change can hide; otherwise the gap is halved, and a point
 /// whose signature differs is a change, cut at as the nodes' ones are. (A
 /// change between points closer than 1e-9 of the panel is not looked for: its
-/// share of the integral is below that.)
+/// share of the integral is below that.) A panel's ends are looked at just
+/// inside it ([`just_inside`]). A panel that ends at a cut or at `a` or `b`
+/// adds `|f(end) − f(nearest node)| × gap` to its estimate (for each such
+/// end): the integrand can change steeply in the sliver no node reaches.
 #[allow(clippy::too_many_arguments)]
 pub fn integrate_adaptive_cut_at_changes_certified<const N: usize>(
     mut f: impl FnMut(f64) -> ([f64; N], u64),
@@ -657,8 +660,8 @@ pub fn integrate_adaptive_cut_at_changes_certified<const N: usize>(
             // to their own tolerance).
             {
                 let at_cut = |t: f64| t == a || t == b || cuts.contains(&t);
-                for (at_cut, end, node) in [(at_cut(pa), pa, &nodes[0]), (at_cut(pb), pb, &nodes[14])] {
-                    if !at_cut {
+                for (is_cut, end, node) in [(at_cut(pa), pa, &nodes[0]), (at_cut(pb), pb, &nodes[14])] {
+                    if !is_cut {
                         continue;
                     }
                     let (at_end, _) = f(just_inside(end, pa, pb));
