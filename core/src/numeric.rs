@@ -618,9 +618,24 @@ pub fn integrate_adaptive_cut_at_changes_certified<const N: usize>(
         while let Some((pa, pb)) = pending.pop() {
             let (v, mut e, mut change, nodes) = panel(&mut f, pa, pb);
             evaluations += 15;
+            // The integrand just inside each end ([`just_inside`]), looked at
+            // once for the hidden-change search and the end terms below.
+            let mut ends: [Option<(f64, [f64; N], u64)>; 2] = [None, None];
+            let mut end_probe = |f: &mut dyn FnMut(f64) -> ([f64; N], u64), k: usize, evaluations: &mut usize| {
+                *ends[k].get_or_insert_with(|| {
+                    *evaluations += 1;
+                    let t = just_inside(if k == 0 { pa } else { pb }, pa, pb);
+                    let (value, signature) = f(t);
+                    (t, value, signature)
+                })
+            };
             if change.is_none() {
                 let signatures = std::array::from_fn(|i| (nodes[i].0, nodes[i].1));
-                let (found, spent) = hidden_change(&mut f, &mut clearance, &lipschitz, pa, pb, &signatures);
+                let probed = [0, 1].map(|k| {
+                    let (t, _, signature) = end_probe(&mut f, k, &mut evaluations);
+                    (t, signature)
+                });
+                let (found, spent) = hidden_change(&mut f, &mut clearance, &lipschitz, pa, pb, &signatures, probed);
                 change = found;
                 evaluations += spent;
             }
@@ -660,12 +675,11 @@ pub fn integrate_adaptive_cut_at_changes_certified<const N: usize>(
             // to their own tolerance).
             {
                 let at_cut = |t: f64| t == a || t == b || cuts.contains(&t);
-                for (is_cut, end, node) in [(at_cut(pa), pa, &nodes[0]), (at_cut(pb), pb, &nodes[14])] {
-                    if !is_cut {
+                for (k, end, node) in [(0, pa, &nodes[0]), (1, pb, &nodes[14])] {
+                    if !at_cut(end) {
                         continue;
                     }
-                    let (at_end, _) = f(just_inside(end, pa, pb));
-                    evaluations += 1;
+                    let (_, at_end, _) = end_probe(&mut f, k, &mut evaluations);
                     let gap = (node.0 - end).abs();
                     for i in 0..N {
                         e[i] += (at_end[i] - node.2[i]).abs() * gap;
@@ -702,21 +716,19 @@ fn hidden_change<const N: usize>(
     pa: f64,
     pb: f64,
     nodes: &[(f64, u64); 15],
+    probed: [(f64, u64); 2],
 ) -> (Option<(f64, f64, u64)>, usize) {
     let signature = nodes[0].1;
     let mut spent = 0usize;
     // The panel's ends first: one whose signature differs has a change
     // between it and the nearest node (the nodes do not reach a panel's ends).
+    // `probed` are the ends looked at just inside the panel: at a change
+    // already cut at, its side's signature (another change may follow right
+    // after it); at a window's end, where the view ray crosses a boundary,
+    // that one point may have its own signature, and a change found there
+    // would collapse onto the end and stop the search of the panel's inside.
     let mut ends: SmallVec<[f64; 2]> = SmallVec::new();
-    for left in [true, false] {
-        // Looked at just inside the panel: at a change already cut at, its
-        // side's signature (another change may follow right after it); at a
-        // window's end, where the view ray crosses a boundary, that one point
-        // may have its own signature, and a change found there would collapse
-        // onto the end and stop the search of the panel's inside.
-        let end = just_inside(if left { pa } else { pb }, pa, pb);
-        let (_, s) = f(end);
-        spent += 1;
+    for (left, (end, s)) in [true, false].into_iter().zip(probed) {
         if s != signature {
             let found = if left {
                 (end, nodes[0].0, s)
