@@ -498,18 +498,19 @@ fn depth_level_cuts(ends: &[f64], depth: &dyn Fn(f64) -> f64, out: &mut Vec<f64>
             if (other.max(mid).max(quarter) - base).partial_cmp(&0.5) != Some(std::cmp::Ordering::Greater) {
                 continue;
             }
-            let mut u = 1.0;
             // 4^{−26} ≈ 2e-16: as close to the end as the window resolves.
-            for _ in 0..26 {
-                u *= 0.25;
+            // (The first point's depth is the quarter-way probe's.)
+            let mut u = 0.25;
+            for j in 0..26 {
                 let t = from + (to - from) * u;
-                let rise = depth(t) - base;
+                let rise = if j == 0 { quarter } else { depth(t) } - base;
                 if rise <= 1.0 / 16.0 {
                     break;
                 }
                 if rise < 256.0 {
                     out.push(t);
                 }
+                u *= 0.25;
             }
         }
     }
