@@ -242,6 +242,81 @@ fn height_field_clearance_bounds_the_least_height_above_the_boundary() {
     assert!(clear > 50 && crossing > 50, "{clear} clear, {crossing} crossing");
 }
 
+#[test]
+fn height_field_clearance_rate_keeps_nearby_paths_clear() {
+    // Points `x` moving along a line, paths from them to a lamp (low, a few
+    // cm over the crests' troughs as a shin-height side light, or above the
+    // crests): a path with clearance `c` keeps every path from within
+    // `c / rate` of it clear, `rate` taken over the points passed. The first
+    // point along the line whose path crosses the boundary (stepped at 5 mm,
+    // then bisected, crossings by brute-force sampling at 0.5 mm) is at least
+    // that far away.
+    let m = layer([370.0, 0.0], [0.0, 0.0], 0.0, 0.0, 1e-6);
+    let mut rng = Rng(29);
+    let crosses = |x: DVec3, lamp: DVec3| -> bool {
+        let v = lamp - x;
+        let len = v.length();
+        ref_pieces(&field_g, x, v / len, 0.0, len, 5e-4).iter().any(|p| p.2)
+    };
+    let (mut checked, mut tightest, mut reduced) = (0, 0.0f64, 0);
+    for case in 0..240 {
+        let (lx, ly) = (rng.range(-2.0, 2.0), rng.range(-2.0, 2.0));
+        let lamp = if case % 3 == 2 {
+            DVec3::new(lx, ly, ref_top() + rng.range(0.01, 0.5))
+        } else {
+            DVec3::new(lx, ly, ref_height(lx, ly) + rng.range(0.02, 0.1))
+        };
+        let along = rng.range(2.0, 4.0);
+        let az = rng.range(0.0, TAU);
+        let x0 = DVec3::new(lx + along * az.cos(), ly + along * az.sin(), ref_top() + rng.range(-0.15, 0.6));
+        let d = rng.unit();
+        let Some(c) = m.clearance_between(x0, lamp) else {
+            continue;
+        };
+        if c <= 0.0 || crosses(x0, lamp) {
+            continue;
+        }
+        // The first crossing along the line (within 2 m).
+        let mut step = 0.0;
+        let found = loop {
+            step += 5e-3;
+            if step > 2.0 {
+                break None;
+            }
+            if crosses(x0 + d * step, lamp) {
+                let (mut lo, mut hi) = (step - 5e-3, step);
+                for _ in 0..30 {
+                    let mid = 0.5 * (lo + hi);
+                    if crosses(x0 + d * mid, lamp) {
+                        hi = mid;
+                    } else {
+                        lo = mid;
+                    }
+                }
+                break Some(lo);
+            }
+        };
+        let Some(first) = found else {
+            continue;
+        };
+        let lowest_z = x0.z.min((x0 + d * first).z);
+        let rate = m.clearance_rate(d, lowest_z, lamp);
+        if rate < m.clearance_rate(d, f64::NAN, lamp) {
+            reduced += 1;
+        }
+        checked += 1;
+        // (The brute force's own sampling: paths up to 5 m at 0.5 mm, a
+        // crossing of depth below `slope·step²` can be missed.)
+        assert!(
+            c <= rate * first * (1.0 + 1e-9) + 1e-6,
+            "case {case}: clearance {c} but a crossing {first} m along the line (rate {rate})"
+        );
+        tightest = tightest.max(c / (rate * first));
+    }
+    eprintln!("clearance rate: {checked} lines, {reduced} with a reduced rate, tightest c/(rate·distance) {tightest:.3}");
+    assert!(checked >= 30 && reduced >= 10, "{checked} checked, {reduced} reduced");
+}
+
 // ------------------------------------------------------------------ height field: sun in-scatter
 
 /// Reference sun + ambient single scattering along `[0, s_max]` with `panels`

@@ -1213,11 +1213,12 @@ impl<const C: usize> StageLights<C> {
             // Light paths clear of the wavy boundaries: how high above them
             // (the least over the layers; ∞ where a path crosses one, which
             // the crossings' signature covers). A crest can cut the paths
-            // between two nodes only where that height falls to 0, and it
-            // changes with `t` no faster than `1 + max slope` (a point of the
-            // path moves by `(1 − s)·dt`, the boundary under it by at most
-            // `slope·(1 − s)·dt`), with `u` no faster than that times
-            // `dt/du = h/cos²u`.
+            // between two nodes only where that height falls to 0, which it
+            // does with `t` no faster than each layer's
+            // [`HeightFieldLayer::clearance_rate`] (at most `1 + max slope`:
+            // a point of the path moves by `(1 − s)·dt`, the boundary under
+            // it by at most `slope·(1 − s)·dt`), with `u` no faster than that
+            // times `dt/du = h/cos²u`.
             let clearance = |u: f64| -> f64 {
                 let x = o + d * (tc + h * u.tan());
                 media
@@ -1228,16 +1229,18 @@ impl<const C: usize> StageLights<C> {
                     })
                     .fold(f64::INFINITY, f64::min)
             };
-            let steepest = media
-                .iter()
-                .filter_map(|m| match m {
-                    PreparedMedium::HeightFieldLayer(hf) => Some(hf.max_slope()),
-                    _ => None,
-                })
-                .fold(0.0f64, f64::max);
             let lipschitz = |u0: f64, u1: f64| -> f64 {
                 let c = u0.abs().max(u1.abs()).cos();
-                (1.0 + steepest) * h / (c * c)
+                let (z0, z1) = (o.z + d.z * (tc + h * u0.tan()), o.z + d.z * (tc + h * u1.tan()));
+                let lowest_z = if z0.is_nan() || z1.is_nan() { f64::NAN } else { z0.min(z1) };
+                let rate = media
+                    .iter()
+                    .filter_map(|m| match m {
+                        PreparedMedium::HeightFieldLayer(hf) => Some(hf.clearance_rate(d, lowest_z, l.position)),
+                        _ => None,
+                    })
+                    .fold(0.0f64, f64::max);
+                rate * h / (c * c)
             };
             for wdw in bounds.windows(2) {
                 if wdw[1] <= wdw[0] {
