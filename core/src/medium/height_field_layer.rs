@@ -25,6 +25,11 @@
 //!   test needs intervals as short as `√(f/M)` there, this one does not);
 //! * else the interval is halved.
 //!
+//! At a midpoint the waves' sines and cosines come from the interval ends'
+//! (the phase is linear in `t`: the normalised sum of the ends' unit vectors),
+//! where a wave turns by at most π/2 over the interval; the tests carry
+//! `1e-13 Σ|A|` of slack on `f` for that (and `1e-13 Σ|A ω|` on `f'`).
+//!
 //! Both tests are rigorous bounds (up to rounding of `f`), so no crossing is
 //! missed except pairs closer than ~1e-13 relative (a ray touching a crest;
 //! the misclassified length is below that width). Each piece between roots
