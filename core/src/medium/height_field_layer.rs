@@ -310,9 +310,9 @@ impl<const C: usize> Search<'_, C> {
         let fast = self.layer.waves.len() <= FAST_WAVES;
         let (slack_f, slack_df) = if fast {
             let (mut sf, mut sdf) = (0.0, 0.0);
-            for w in &self.layer.waves {
+            for (w, om) in self.layer.waves.iter().zip(self.omega) {
                 sf += w.amplitude.abs();
-                sdf += (w.amplitude * (w.kx * self.d.x + w.ky * self.d.y)).abs();
+                sdf += (w.amplitude * om).abs();
             }
             (1e-13 * sf, 1e-13 * sdf)
         } else {
