@@ -216,7 +216,6 @@ impl<const C: usize> Search<'_, C> {
     /// [`Self::isolate`] carry that as slack.
     #[inline]
     fn phases_between(&self, a: &Phases, b: &Phases, span: f64, m: f64) -> Phases {
-        let (x, y) = (self.o.x + self.d.x * m, self.o.y + self.d.y * m);
         let mut out = [(0.0, 1.0); FAST_WAVES];
         for (k, w) in self.layer.waves.iter().enumerate() {
             if self.omega[k].abs() * span <= std::f64::consts::FRAC_PI_2 {
@@ -226,6 +225,7 @@ impl<const C: usize> Search<'_, C> {
                 let inv = 1.0 / (s * s + c * c).sqrt();
                 out[k] = (s * inv, c * inv);
             } else {
+                let (x, y) = (self.o.x + self.d.x * m, self.o.y + self.d.y * m);
                 out[k] = (w.kx * x + w.ky * y + w.phase).sin_cos();
             }
         }
