@@ -285,6 +285,42 @@ const UNSPLIT_SHARE: f64 = 0.5;
 /// has its own lattice (shared points at tile borders are traced twice), which
 /// bounds memory and gives the threads independent work.
 const TILE_PX: usize = 16;
+/// A batch of view rays is split among the threads in chunks that take at
+/// least this long (s), judged by the batch's first ray (rayon's own
+/// splitting costs a few µs per chunk: cheap rays stay on one thread).
+const PARALLEL_CHUNK_SECONDS: f64 = 100e-6;
+
+/// Traces the view rays at `at` (pixel coordinates), in order, on every
+/// thread that is free. The squares at lights' images and the lattice's
+/// tiles are the units of work that the threads share, but each asks for
+/// its rays in batches: where the image is small (one tile at 12×7, one
+/// square) or one unit holds most of the refinement (a light's image), the
+/// other threads would otherwise wait once every unit has started. Before
+/// that (`spare_threads` false) the batch is traced here, in order
+/// (batching and splitting every batch made the box occluder's render at
+/// 96×54, whose threads are busy with tiles, 6 % slower). A ray's value does not
+/// depend on the thread that traces it, so the image is bit-identical to
+/// tracing the rays one by one.
+fn trace_batch<S: FilterSample>(sample: &(dyn Fn(f64, f64) -> S + Sync), at: &[(f64, f64)], spare_threads: bool) -> Vec<S> {
+    if !spare_threads {
+        return at.iter().map(|&(x, y)| sample(x, y)).collect();
+    }
+    let Some((&(x, y), rest)) = at.split_first() else {
+        return Vec::new();
+    };
+    let start = std::time::Instant::now();
+    let first = sample(x, y);
+    let cost = start.elapsed().as_secs_f64();
+    let chunk = (PARALLEL_CHUNK_SECONDS / cost.max(1e-9)).ceil().min(1e6) as usize;
+    let mut out = Vec::with_capacity(at.len());
+    out.push(first);
+    if rest.len() >= 2 * chunk.max(1) {
+        out.par_extend(rest.par_iter().with_min_len(chunk.max(1)).map(|&(x, y)| sample(x, y)));
+    } else {
+        out.extend(rest.iter().map(|&(x, y)| sample(x, y)));
+    }
+    out
+}
 
 /// One flagged pixel after [`filter_adaptive`].
 pub(crate) struct FilteredPixel<S> {
@@ -555,9 +591,37 @@ struct TileLattice<'a, S> {
     plan: &'a PolarPlan,
     polar: &'a [PolarSquare<S>],
     polar_index: &'a HashMap<(i64, i64), u32>,
+    /// Tiles the threads have taken so far, of `tiles`.
+    tiles_started: &'a std::sync::atomic::AtomicUsize,
+    tiles: usize,
 }
 
 impl<S: FilterSample> TileLattice<'_, S> {
+    /// Whether every tile has started, so that a thread may be free for
+    /// this tile's rays ([`trace_batch`]).
+    fn spare_threads(&self) -> bool {
+        self.tiles_started.load(std::sync::atomic::Ordering::Relaxed) >= self.tiles
+    }
+
+    /// Traces the lattice points of `wanted` not traced yet, as one batch
+    /// on the spare threads ([`trace_batch`]); [`Self::point`] then finds
+    /// them. Nothing while no thread is spare: `point` traces them then.
+    fn prefetch(&mut self, mut wanted: Vec<(i64, i64)>) {
+        if !self.spare_threads() {
+            return;
+        }
+        wanted.retain(|p| !self.points.contains_key(p));
+        wanted.sort_unstable();
+        wanted.dedup();
+        let u = UNITS_PER_PX as f64;
+        let at: Vec<(f64, f64)> = wanted.iter().map(|&(k, l)| (0.5 + k as f64 / u, 0.5 + l as f64 / u)).collect();
+        for (p, s) in wanted.into_iter().zip(trace_batch(self.sample, &at, true)) {
+            let i = self.samples.len() as u32;
+            self.samples.push(s);
+            self.points.insert(p, i);
+        }
+    }
+
     fn point(&mut self, k: i64, l: i64) -> u32 {
         if let Some(&i) = self.points.get(&(k, l)) {
             return i;
@@ -617,14 +681,8 @@ impl<S: FilterSample> TileLattice<'_, S> {
         // Second differences along x and y at the corners (k,l), (k+s,l), (k,l+s), (k+s,l+s).
         let mut dxx = [([0.0f64; 3], [0.0f64; 3]); 4];
         let mut dyy = [([0.0f64; 3], [0.0f64; 3]); 4];
-        for (n, (ck, cl)) in [(k, l), (k + s, l), (k, l + s), (k + s, l + s)].into_iter().enumerate() {
-            let ids = [
-                self.point(ck, cl),
-                self.point(ck - s, cl),
-                self.point(ck + s, cl),
-                self.point(ck, cl - s),
-                self.point(ck, cl + s),
-            ];
+        for (n, stencil) in deviation_stencils(k, l, s).into_iter().enumerate() {
+            let ids = stencil.map(|(k, l)| self.point(k, l));
             let [c, xm, xp, ym, yp] = ids.map(|i| {
                 let p = &self.samples[i as usize];
                 (p.radiance(), p.transmittance())
@@ -776,14 +834,16 @@ impl<S: FilterSample> TileLattice<'_, S> {
         let cs = [corner(0), corner(1), corner(2), corner(3)];
         let mut dev = [0.0f64; 3];
         let mut t_dev = 0.0f64;
-        for (dk, dl, mix) in [
-            (h, 0, [0.5, 0.5, 0.0, 0.0]),
-            (0, h, [0.5, 0.0, 0.5, 0.0]),
-            (2 * h, h, [0.0, 0.5, 0.0, 0.5]),
-            (h, 2 * h, [0.0, 0.0, 0.5, 0.5]),
-            (h, h, [0.25; 4]),
-        ] {
-            let p = self.point(c.k + dk, c.l + dl);
+        // The mixes of the corners at the points of `split_points`, in its order.
+        let mixes = [
+            [0.5, 0.5, 0.0, 0.0],
+            [0.5, 0.0, 0.5, 0.0],
+            [0.0, 0.5, 0.0, 0.5],
+            [0.0, 0.0, 0.5, 0.5],
+            [0.25; 4],
+        ];
+        for ((k, l), mix) in split_points(c.k, c.l, c.size).into_iter().zip(mixes) {
+            let p = self.point(k, l);
             let (l, t) = (self.samples[p as usize].radiance(), self.samples[p as usize].transmittance());
             for ch in 0..3 {
                 let il: f64 = (0..4).map(|j| mix[j] * cs[j].0[ch]).sum();
@@ -945,11 +1005,61 @@ impl<S: FilterSample> TileLattice<'_, S> {
         }
     }
 
+    /// Traces, as two batches, the points round 0 reads: the corners of
+    /// the new root cells of the windows of `pixels` (those not in a polar
+    /// square), then the stencils of [`Self::root_deviation`] for the roots
+    /// that [`Self::new_cell`] will find not flat by their corners (the same
+    /// test, so no ray is traced that it would not trace).
+    fn prefetch_roots(&mut self, pixels: &[usize]) {
+        if !self.spare_threads() {
+            return;
+        }
+        let half = self.table.shared.half_units;
+        let n_roots = 2 * half / ROOT_CELL;
+        let mut new_roots: Vec<(i64, i64)> = Vec::new();
+        for &index in pixels {
+            let (x, y) = ((index % self.job.width) as i64, (index / self.job.width) as i64);
+            let (kc, lc) = (x * UNITS_PER_PX, y * UNITS_PER_PX);
+            for b in 0..n_roots {
+                for a in 0..n_roots {
+                    let (k, l) = (kc - half + a * ROOT_CELL, lc - half + b * ROOT_CELL);
+                    let u = UNITS_PER_PX as f64;
+                    let polar = self
+                        .plan
+                        .square_of(0.5 + k as f64 / u, 0.5 + l as f64 / u)
+                        .is_some_and(|(sq, _)| self.polar_index.contains_key(&sq));
+                    if !polar && !self.roots.contains_key(&(k, l)) {
+                        new_roots.push((k, l));
+                    }
+                }
+            }
+        }
+        new_roots.sort_unstable();
+        new_roots.dedup();
+        let s = ROOT_CELL;
+        self.prefetch(
+            new_roots
+                .iter()
+                .flat_map(|&(k, l)| [(k, l), (k + s, l), (k, l + s), (k + s, l + s)])
+                .collect(),
+        );
+        let mut stencils = Vec::new();
+        for &(k, l) in &new_roots {
+            let corners = [(k, l), (k + s, l), (k, l + s), (k + s, l + s)].map(|(k, l)| self.points[&(k, l)]);
+            let (spread, t_spread) = self.corner_spread(&corners);
+            if !self.at_light(k, l, s) && !self.within_flat(&spread, t_spread, self.root_scale(k, l)) {
+                stencils.extend(deviation_stencils(k, l, s).into_iter().flatten());
+            }
+        }
+        self.prefetch(stencils);
+    }
+
     fn run(&mut self, pixels: &[usize]) -> Vec<FilteredPixel<S>> {
         let half = self.table.shared.half_units;
         let n_roots = 2 * half / ROOT_CELL;
         let tol = self.job.tolerance;
         let mut done = Vec::with_capacity(pixels.len());
+        self.prefetch_roots(pixels);
         // Round 0: the root cells of every window.
         let mut active: Vec<PixelState> = Vec::with_capacity(pixels.len());
         for &index in pixels {
@@ -1047,6 +1157,13 @@ impl<S: FilterSample> TileLattice<'_, S> {
             let mut split: Vec<u32> = active.iter().flat_map(|p| p.frontier.iter().copied()).collect();
             split.sort_unstable();
             split.dedup();
+            let wanted = split
+                .iter()
+                .map(|&i| self.cells[i as usize])
+                .filter(|c| c.child == 0)
+                .flat_map(|c| split_points(c.k, c.l, c.size))
+                .collect();
+            self.prefetch(wanted);
             let mut by_root: HashMap<u32, Vec<u32>> = HashMap::default();
             for &i in &split {
                 self.split(i);
@@ -1138,6 +1255,20 @@ impl<S: FilterSample> TileLattice<'_, S> {
         }
         done
     }
+}
+
+/// The lattice points [`TileLattice::root_deviation`] reads for the root
+/// cell of side `s` with corner (k, l): each corner and its four neighbours
+/// at distance `s` (centre, −x, +x, −y, +y).
+fn deviation_stencils(k: i64, l: i64, s: i64) -> [[(i64, i64); 5]; 4] {
+    [(k, l), (k + s, l), (k, l + s), (k + s, l + s)].map(|(ck, cl)| [(ck, cl), (ck - s, cl), (ck + s, cl), (ck, cl - s), (ck, cl + s)])
+}
+
+/// The five lattice points [`TileLattice::split`] adds to the cell of side
+/// `size` with corner (k, l): its edges' midpoints and its centre.
+fn split_points(k: i64, l: i64, size: i64) -> [(i64, i64); 5] {
+    let h = size / 2;
+    [(k + h, l), (k, l + h), (k + 2 * h, l + h), (k + h, l + 2 * h), (k + h, l + h)]
 }
 
 /// The error a round of splits left, per unit of the change it made. Across
@@ -1241,6 +1372,9 @@ struct PolarNode {
     gk: f64,
     kg: f64,
 }
+
+/// A polar rectangle's angle range (radians) and radial fraction range, `(φ, s)`.
+type RectRange = ((f64, f64), (f64, f64));
 
 /// A rectangle of the polar rule: φ ∈ [φ₀, φ₁], s ∈ [s₀, s₁], its nodes.
 #[derive(Clone)]
@@ -1481,6 +1615,7 @@ impl<S: FilterSample> PolarSquare<S> {
         norm: f64,
         sample: &(dyn Fn(f64, f64) -> S + Sync),
         sq: (i64, i64),
+        spare_threads: &(dyn Fn() -> bool + Sync),
     ) -> Self {
         let img = &job.polar_images[plan.squares[&sq]];
         let (x0, y0) = (sq.0 as f64 + plan.offset, sq.1 as f64 + plan.offset);
@@ -1539,15 +1674,19 @@ impl<S: FilterSample> PolarSquare<S> {
             rects: Vec::new(),
             holders: Vec::new(),
         };
+        let pieces: Vec<RectRange> = cuts
+            .windows(2)
+            .map(|piece| (piece[0], piece[1]))
+            .filter(|&(a, b)| {
+                let (lo, hi) = clip(0.5 * (a + b));
+                b - a > 1e-12 && hi - lo > 1e-12
+            })
+            .map(|phi| (phi, (0.0, 1.0)))
+            .collect();
         let mut shares: Vec<Vec<RectShare>> = Vec::new();
-        for piece in cuts.windows(2) {
-            let (a, b) = (piece[0], piece[1]);
-            let (lo, hi) = clip(0.5 * (a + b));
-            if b - a > 1e-12 && hi - lo > 1e-12 {
-                let rect = square.trace(sample, &clip, (a, b), (0.0, 1.0));
-                shares.push(square.shares(job.filter, &rect, &holders));
-                square.rects.push(rect);
-            }
+        for rect in square.trace(sample, &clip, &pieces, spare_threads()) {
+            shares.push(square.shares(job.filter, &rect, &holders));
+            square.rects.push(rect);
         }
         // Bisect the worst rectangle until every pixel is within its share.
         loop {
@@ -1614,8 +1753,11 @@ impl<S: FilterSample> PolarSquare<S> {
             if (halves_phi[0].1 - halves_phi[0].0) < 1e-12 || (halves_s[0].1 - halves_s[0].0) < 1e-12 {
                 break;
             }
-            let a = square.trace(sample, &clip, halves_phi[0], halves_s[0]);
-            let b = square.trace(sample, &clip, halves_phi[1], halves_s[1]);
+            let halves = [(halves_phi[0], halves_s[0]), (halves_phi[1], halves_s[1])];
+            let mut halves = square.trace(sample, &clip, &halves, spare_threads()).into_iter();
+            let (Some(a), Some(b)) = (halves.next(), halves.next()) else {
+                break;
+            };
             shares[k] = square.shares(job.filter, &a, &holders);
             square.rects[k] = a;
             shares.push(square.shares(job.filter, &b, &holders));
@@ -1629,41 +1771,49 @@ impl<S: FilterSample> PolarSquare<S> {
         square
     }
 
-    /// Traces the 25 nodes of the rectangle φ ∈ `phi`, s ∈ `s`.
+    /// Traces the 25 nodes of each rectangle `(φ range, s range)` of
+    /// `rects`, all as one batch ([`trace_batch`], on other threads too
+    /// where `spare_threads`).
     fn trace(
         &mut self,
         sample: &(dyn Fn(f64, f64) -> S + Sync),
         clip: &dyn Fn(f64) -> (f64, f64),
-        phi: (f64, f64),
-        s: (f64, f64),
-    ) -> PolarRect {
-        let start = self.nodes.len();
+        rects: &[RectRange],
+        spare_threads: bool,
+    ) -> Vec<PolarRect> {
         let (cx, cy) = self.at;
-        let (hp, hs) = (0.5 * (phi.1 - phi.0), 0.5 * (s.1 - s.0));
-        for &(zp, kp, gp) in &GK5 {
-            let angle = 0.5 * (phi.0 + phi.1) + hp * zp;
-            let (lo, hi) = clip(angle);
-            let (dy, dx) = angle.sin_cos();
-            for &(zs, ks, gs) in &GK5 {
-                let t = 0.5 * (s.0 + s.1) + hs * zs;
-                let rho = lo + t * (hi - lo);
-                let (x, y) = (cx + rho * dx, cy + rho * dy);
-                let jac = hp * hs * (hi - lo) * rho;
-                self.samples.push(sample(x, y));
-                self.nodes.push(PolarNode {
-                    x,
-                    y,
-                    kk: kp * ks * jac,
-                    gk: gp * ks * jac,
-                    kg: kp * gs * jac,
-                });
+        let mut out = Vec::with_capacity(rects.len());
+        let first_node = self.nodes.len();
+        for &(phi, s) in rects {
+            let start = self.nodes.len();
+            let (hp, hs) = (0.5 * (phi.1 - phi.0), 0.5 * (s.1 - s.0));
+            for &(zp, kp, gp) in &GK5 {
+                let angle = 0.5 * (phi.0 + phi.1) + hp * zp;
+                let (lo, hi) = clip(angle);
+                let (dy, dx) = angle.sin_cos();
+                for &(zs, ks, gs) in &GK5 {
+                    let t = 0.5 * (s.0 + s.1) + hs * zs;
+                    let rho = lo + t * (hi - lo);
+                    let (x, y) = (cx + rho * dx, cy + rho * dy);
+                    let jac = hp * hs * (hi - lo) * rho;
+                    self.nodes.push(PolarNode {
+                        x,
+                        y,
+                        kk: kp * ks * jac,
+                        gk: gp * ks * jac,
+                        kg: kp * gs * jac,
+                    });
+                }
             }
+            out.push(PolarRect {
+                phi,
+                s,
+                nodes: start..self.nodes.len(),
+            });
         }
-        PolarRect {
-            phi,
-            s,
-            nodes: start..self.nodes.len(),
-        }
+        let at: Vec<(f64, f64)> = self.nodes[first_node..].iter().map(|n| (n.x, n.y)).collect();
+        self.samples.extend(trace_batch(sample, &at, spare_threads));
+        out
     }
 
     /// The rectangle's sums for each pixel of `holders` (pixel, scale).
@@ -1765,10 +1915,19 @@ pub(crate) fn filter_adaptive<S: FilterSample>(
     };
     let mut keys: Vec<(i64, i64)> = plan.squares.keys().copied().filter(holders_flagged).collect();
     keys.sort_unstable();
+    // Once every square has started, a thread may be free for the rays of
+    // the squares still running ([`trace_batch`]).
+    let squares_started = std::sync::atomic::AtomicUsize::new(0);
+    let squares = if rayon::current_num_threads() > 1 { keys.len() } else { usize::MAX };
+    let spare_threads = || squares_started.load(std::sync::atomic::Ordering::Relaxed) >= squares;
     let polar: Vec<PolarSquare<S>> = keys
         .par_iter()
-        .map(|&sq| PolarSquare::integrate(job, &plan, table.norm, sample, sq))
+        .map(|&sq| {
+            squares_started.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+            PolarSquare::integrate(job, &plan, table.norm, sample, sq, &spare_threads)
+        })
         .collect();
+    let tiles_started = std::sync::atomic::AtomicUsize::new(0);
     let polar_index: HashMap<(i64, i64), u32> = keys.iter().enumerate().map(|(i, &k)| (k, i as u32)).collect();
     let mut tiles: HashMap<(usize, usize), Vec<usize>> = HashMap::default();
     for &i in flagged {
@@ -1814,8 +1973,15 @@ pub(crate) fn filter_adaptive<S: FilterSample>(
             plan: &plan,
             polar: &polar,
             polar_index: &polar_index,
+            tiles_started: &tiles_started,
+            tiles: if rayon::current_num_threads() > 1 {
+                groups.len()
+            } else {
+                usize::MAX
+            },
         },
         |lattice, pixels| {
+            tiles_started.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
             if job.cancel.is_some_and(|c| c.load(std::sync::atomic::Ordering::Relaxed)) {
                 return (Vec::new(), AdaptiveFilterStats::default());
             }
@@ -2335,6 +2501,83 @@ mod adaptive_tests {
                 &[],
                 1.0,
             );
+        }
+    }
+
+    /// The toy image's rays, costly (each sleeps 100 µs) and counted per
+    /// thread, through the filter on a pool of `threads`.
+    fn filter_costly_rays(
+        threads: usize,
+        f: &(dyn Fn(f64, f64) -> f64 + Sync),
+        polar: &[LightImage],
+    ) -> (Vec<FilteredPixel<Toy>>, Vec<usize>) {
+        let (w, h) = TOY_SIZE;
+        let scale_of = |i: usize| toy_window_max(f, i);
+        let lights: Vec<(f64, f64)> = polar.iter().map(|p| p.at).collect();
+        let job = AdaptiveFilterJob {
+            cancel: None,
+            progress: &|_, _| {},
+            filter: PixelFilter::default(),
+            width: w,
+            height: h,
+            tolerance: 1e-2,
+            window_scale: &scale_of,
+            light_images: &lights,
+            polar_images: polar,
+            beam_width: None,
+        };
+        let flagged: Vec<usize> = (0..w * h).collect();
+        let per_thread: Vec<std::sync::atomic::AtomicUsize> = (0..threads).map(|_| Default::default()).collect();
+        let sample = |x: f64, y: f64| {
+            std::thread::sleep(std::time::Duration::from_micros(100));
+            if let Some(i) = rayon::current_thread_index() {
+                per_thread[i].fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+            }
+            Toy {
+                l: [f(x, y); 3],
+                weight: 0.0,
+            }
+        };
+        let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().expect("a thread pool");
+        let (out, _) = pool.install(|| filter_adaptive(&job, &flagged, &sample));
+        (
+            out,
+            per_thread.iter().map(|n| n.load(std::sync::atomic::Ordering::Relaxed)).collect(),
+        )
+    }
+
+    /// The toy image is one tile and its light's image one polar square, so
+    /// before the batches of [`trace_batch`] a second thread had nothing to
+    /// do. With costly rays both threads now trace, the same rays, and the
+    /// pixels are bit-identical to one thread's.
+    #[test]
+    fn one_tiles_costly_rays_are_shared_by_the_threads_and_change_nothing() {
+        let light = (4.3, 5.6);
+        let f = |x: f64, y: f64| {
+            let step = if 0.3 * x + y > 6.1 { 1.0 } else { 0.25 };
+            step + 0.2 / (x - light.0).hypot(y - light.1).max(1e-9)
+        };
+        let polar = [LightImage {
+            at: light,
+            cuts: Vec::new(),
+        }];
+        let (one, calls_one) = filter_costly_rays(1, &f, &polar);
+        let (two, calls_two) = filter_costly_rays(2, &f, &polar);
+        let total: usize = calls_one.iter().sum();
+        assert_eq!(
+            total,
+            calls_two.iter().sum::<usize>(),
+            "the same rays, {calls_one:?} vs {calls_two:?}"
+        );
+        assert!(
+            calls_two.iter().all(|&n| n >= total / 5),
+            "both threads trace a share of the {total} rays: {calls_two:?}"
+        );
+        assert_eq!(one.len(), two.len());
+        for (a, b) in one.iter().zip(&two) {
+            assert_eq!(a.index, b.index);
+            assert_eq!(a.value.l.map(f64::to_bits), b.value.l.map(f64::to_bits), "pixel {}", a.index);
+            assert_eq!(a.error.map(f64::to_bits), b.error.map(f64::to_bits), "pixel {}", a.index);
         }
     }
 }
