@@ -261,7 +261,7 @@ impl<const C: usize> PreparedMedium<C> {
     /// breakpoints). A height-field layer's path can graze its waves; those
     /// kinks are not listed here: where a path may graze, the stage
     /// integral cuts its windows where the path's crossings of the boundary
-    /// change (`integrate_adaptive_cut_at_changes`).
+    /// change (`integrate_adaptive_cut_at_changes_certified`).
     pub fn light_path_kinks(&self, ray: &ViewRay, light: &LightPath<'_>, out: &mut Vec<f64>) {
         match (self, light) {
             (PreparedMedium::Homogeneous(m), LightPath::Point(l)) => {
