@@ -2120,6 +2120,22 @@ mod adaptive_tests {
         polar: &[LightImage],
         beam_width: Option<&BeamWidth<'_>>,
     ) -> (Vec<FilteredPixel<Toy>>, AdaptiveFilterStats) {
+        let sample = |x: f64, y: f64| Toy {
+            l: [f(x, y); 3],
+            weight: 0.0,
+        };
+        filter_toy_sampled(f, tol, lights, polar, beam_width, &sample)
+    }
+
+    /// [`filter_toy_polar`] with the view rays traced by `sample`.
+    fn filter_toy_sampled(
+        f: &(dyn Fn(f64, f64) -> f64 + Sync),
+        tol: f64,
+        lights: &[(f64, f64)],
+        polar: &[LightImage],
+        beam_width: Option<&BeamWidth<'_>>,
+        sample: &(dyn Fn(f64, f64) -> Toy + Sync),
+    ) -> (Vec<FilteredPixel<Toy>>, AdaptiveFilterStats) {
         let (w, h) = TOY_SIZE;
         let scale_of = |i: usize| toy_window_max(f, i);
         let job = AdaptiveFilterJob {
@@ -2135,11 +2151,7 @@ mod adaptive_tests {
             beam_width,
         };
         let flagged: Vec<usize> = (0..w * h).collect();
-        let sample = |x: f64, y: f64| Toy {
-            l: [f(x, y); 3],
-            weight: 0.0,
-        };
-        filter_adaptive(&job, &flagged, &sample)
+        filter_adaptive(&job, &flagged, sample)
     }
 
     /// Brute force: n×n midpoint rule of f·w over the window, normalised.
@@ -2511,22 +2523,7 @@ mod adaptive_tests {
         f: &(dyn Fn(f64, f64) -> f64 + Sync),
         polar: &[LightImage],
     ) -> (Vec<FilteredPixel<Toy>>, Vec<usize>) {
-        let (w, h) = TOY_SIZE;
-        let scale_of = |i: usize| toy_window_max(f, i);
         let lights: Vec<(f64, f64)> = polar.iter().map(|p| p.at).collect();
-        let job = AdaptiveFilterJob {
-            cancel: None,
-            progress: &|_, _| {},
-            filter: PixelFilter::default(),
-            width: w,
-            height: h,
-            tolerance: 1e-2,
-            window_scale: &scale_of,
-            light_images: &lights,
-            polar_images: polar,
-            beam_width: None,
-        };
-        let flagged: Vec<usize> = (0..w * h).collect();
         let per_thread: Vec<std::sync::atomic::AtomicUsize> = (0..threads).map(|_| Default::default()).collect();
         let sample = |x: f64, y: f64| {
             std::thread::sleep(std::time::Duration::from_micros(100));
@@ -2539,7 +2536,7 @@ mod adaptive_tests {
             }
         };
         let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().expect("a thread pool");
-        let (out, _) = pool.install(|| filter_adaptive(&job, &flagged, &sample));
+        let (out, _) = pool.install(|| filter_toy_sampled(f, 1e-2, &lights, polar, None, &sample));
         (
             out,
             per_thread.iter().map(|n| n.load(std::sync::atomic::Ordering::Relaxed)).collect(),
