@@ -654,7 +654,7 @@ pub fn integrate_adaptive_cut_at_changes_certified<const N: usize>(
                 // boundary have no clearance) a change can hide between the
                 // nodes: a crest's shadow 0.01 wide in a panel 0.4 wide,
                 // seen only as a drop between two nodes, and `|K15 − G7|`
-                // was 0.68× the error (a low lamp over dry ice at tolerance
+                // with the end term was 0.68× the error (a low lamp over dry ice at tolerance
                 // 1e-2). There the estimate is at least QUADPACK's, which
                 // grows to the nodes' spread about their mean where the two
                 // rules disagree by much of it.

@@ -2550,31 +2550,34 @@ mod adaptive_tests {
     #[test]
     fn one_tiles_costly_rays_are_shared_by_the_threads_and_change_nothing() {
         let light = (4.3, 5.6);
-        let f = |x: f64, y: f64| {
-            let step = if 0.3 * x + y > 6.1 { 1.0 } else { 0.25 };
-            step + 0.2 / (x - light.0).hypot(y - light.1).max(1e-9)
-        };
+        let step = |x: f64, y: f64| if 0.3 * x + y > 6.1 { 1.0 } else { 0.25 };
+        let with_light = |x: f64, y: f64| step(x, y) + 0.2 / (x - light.0).hypot(y - light.1).max(1e-9);
         let polar = [LightImage {
             at: light,
             cuts: Vec::new(),
         }];
-        let (one, calls_one) = filter_costly_rays(1, &f, &polar);
-        let (two, calls_two) = filter_costly_rays(2, &f, &polar);
-        let total: usize = calls_one.iter().sum();
-        assert_eq!(
-            total,
-            calls_two.iter().sum::<usize>(),
-            "the same rays, {calls_one:?} vs {calls_two:?}"
-        );
-        assert!(
-            calls_two.iter().all(|&n| n >= total / 5),
-            "both threads trace a share of the {total} rays: {calls_two:?}"
-        );
-        assert_eq!(one.len(), two.len());
-        for (a, b) in one.iter().zip(&two) {
-            assert_eq!(a.index, b.index);
-            assert_eq!(a.value.l.map(f64::to_bits), b.value.l.map(f64::to_bits), "pixel {}", a.index);
-            assert_eq!(a.error.map(f64::to_bits), b.error.map(f64::to_bits), "pixel {}", a.index);
+        // The lattice alone (a step), and with a polar square, whose rays
+        // could otherwise make up the second thread's share by themselves.
+        let cases: [(&(dyn Fn(f64, f64) -> f64 + Sync), &[LightImage]); 2] = [(&step, &[]), (&with_light, &polar)];
+        for (f, polar) in cases {
+            let (one, calls_one) = filter_costly_rays(1, f, polar);
+            let (two, calls_two) = filter_costly_rays(2, f, polar);
+            let total: usize = calls_one.iter().sum();
+            assert_eq!(
+                total,
+                calls_two.iter().sum::<usize>(),
+                "the same rays, {calls_one:?} vs {calls_two:?}"
+            );
+            assert!(
+                calls_two.iter().all(|&n| n >= total / 5),
+                "both threads trace a share of the {total} rays: {calls_two:?}"
+            );
+            assert_eq!(one.len(), two.len());
+            for (a, b) in one.iter().zip(&two) {
+                assert_eq!(a.index, b.index);
+                assert_eq!(a.value.l.map(f64::to_bits), b.value.l.map(f64::to_bits), "pixel {}", a.index);
+                assert_eq!(a.error.map(f64::to_bits), b.error.map(f64::to_bits), "pixel {}", a.index);
+            }
         }
     }
 }
