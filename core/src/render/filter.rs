@@ -2558,7 +2558,8 @@ mod adaptive_tests {
         }];
         // The lattice alone (a step), and with a polar square, whose rays
         // could otherwise make up the second thread's share by themselves.
-        let cases: [(&(dyn Fn(f64, f64) -> f64 + Sync), &[LightImage]); 2] = [(&step, &[]), (&with_light, &polar)];
+        type Image<'a> = &'a (dyn Fn(f64, f64) -> f64 + Sync);
+        let cases: [(Image, &[LightImage]); 2] = [(&step, &[]), (&with_light, &polar)];
         for (f, polar) in cases {
             let (one, calls_one) = filter_costly_rays(1, f, polar);
             let (two, calls_two) = filter_costly_rays(2, f, polar);
