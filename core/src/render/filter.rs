@@ -597,6 +597,14 @@ struct TileLattice<'a, S> {
 }
 
 impl<S: FilterSample> TileLattice<'_, S> {
+    /// The polar square whose root cells include the one at (k, l): its
+    /// index in the job's squares and whether this root is its carrier.
+    fn polar_root(&self, k: i64, l: i64) -> Option<(u32, bool)> {
+        let u = UNITS_PER_PX as f64;
+        let (sq, carrier) = self.plan.square_of(0.5 + k as f64 / u, 0.5 + l as f64 / u)?;
+        self.polar_index.get(&sq).map(|&square| (square, carrier))
+    }
+
     /// Whether every tile has started, so that a thread may be free for
     /// this tile's rays ([`trace_batch`]).
     fn spare_threads(&self) -> bool {
@@ -750,12 +758,7 @@ impl<S: FilterSample> TileLattice<'_, S> {
             parent,
             parent_deviation,
         } = origin;
-        let corners = [
-            self.point(k, l),
-            self.point(k + size, l),
-            self.point(k, l + size),
-            self.point(k + size, l + size),
-        ];
+        let corners = cell_corners(k, l, size).map(|(k, l)| self.point(k, l));
         let (mut spread, t_spread) = self.corner_spread(&corners);
         let at_light = self.at_light(k, l, size);
         // Flat: the corners agree, or the image is smooth here (splitting
@@ -1023,12 +1026,7 @@ impl<S: FilterSample> TileLattice<'_, S> {
             for b in 0..n_roots {
                 for a in 0..n_roots {
                     let (k, l) = (kc - half + a * ROOT_CELL, lc - half + b * ROOT_CELL);
-                    let u = UNITS_PER_PX as f64;
-                    let polar = self
-                        .plan
-                        .square_of(0.5 + k as f64 / u, 0.5 + l as f64 / u)
-                        .is_some_and(|(sq, _)| self.polar_index.contains_key(&sq));
-                    if !polar && !self.roots.contains_key(&(k, l)) {
+                    if self.polar_root(k, l).is_none() && !self.roots.contains_key(&(k, l)) {
                         new_roots.push((k, l));
                     }
                 }
@@ -1037,15 +1035,10 @@ impl<S: FilterSample> TileLattice<'_, S> {
         new_roots.sort_unstable();
         new_roots.dedup();
         let s = ROOT_CELL;
-        self.prefetch(
-            new_roots
-                .iter()
-                .flat_map(|&(k, l)| [(k, l), (k + s, l), (k, l + s), (k + s, l + s)])
-                .collect(),
-        );
+        self.prefetch(new_roots.iter().flat_map(|&(k, l)| cell_corners(k, l, s)).collect());
         let mut stencils = Vec::new();
         for &(k, l) in &new_roots {
-            let corners = [(k, l), (k + s, l), (k, l + s), (k + s, l + s)].map(|(k, l)| self.points[&(k, l)]);
+            let corners = cell_corners(k, l, s).map(|(k, l)| self.points[&(k, l)]);
             let (spread, t_spread) = self.corner_spread(&corners);
             if !self.at_light(k, l, s) && !self.within_flat(&spread, t_spread, self.root_scale(k, l)) {
                 stencils.extend(deviation_stencils(k, l, s).into_iter().flatten());
@@ -1071,11 +1064,7 @@ impl<S: FilterSample> TileLattice<'_, S> {
                     let (k, l) = (kc - half + a * ROOT_CELL, lc - half + b * ROOT_CELL);
                     let r = match self.roots.get(&(k, l)) {
                         Some(&r) => r,
-                        None if let Some((sq, carrier)) = self
-                            .plan
-                            .square_of(0.5 + k as f64 / UNITS_PER_PX as f64, 0.5 + l as f64 / UNITS_PER_PX as f64)
-                            && let Some(&square) = self.polar_index.get(&sq) =>
-                        {
+                        None if let Some((square, carrier)) = self.polar_root(k, l) => {
                             let polar = if carrier { square } else { POLAR_EMPTY };
                             let r = self.new_polar_cell(k, l, polar);
                             self.roots.insert((k, l), r);
@@ -1257,11 +1246,17 @@ impl<S: FilterSample> TileLattice<'_, S> {
     }
 }
 
+/// The corners of the cell of side `size` with corner (k, l), in the order
+/// of [`Cell::corners`]: (k, l), (k + size, l), (k, l + size), (k + size, l + size).
+fn cell_corners(k: i64, l: i64, size: i64) -> [(i64, i64); 4] {
+    [(k, l), (k + size, l), (k, l + size), (k + size, l + size)]
+}
+
 /// The lattice points [`TileLattice::root_deviation`] reads for the root
 /// cell of side `s` with corner (k, l): each corner and its four neighbours
 /// at distance `s` (centre, −x, +x, −y, +y).
 fn deviation_stencils(k: i64, l: i64, s: i64) -> [[(i64, i64); 5]; 4] {
-    [(k, l), (k + s, l), (k, l + s), (k + s, l + s)].map(|(ck, cl)| [(ck, cl), (ck - s, cl), (ck + s, cl), (ck, cl - s), (ck, cl + s)])
+    cell_corners(k, l, s).map(|(ck, cl)| [(ck, cl), (ck - s, cl), (ck + s, cl), (ck, cl - s), (ck, cl + s)])
 }
 
 /// The five lattice points [`TileLattice::split`] adds to the cell of side
