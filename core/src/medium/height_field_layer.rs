@@ -16,8 +16,10 @@
 //! cross. On an interval `[a, b]` with midpoint `m` and half-width `r`:
 //!
 //! * if `|f'(m)| > M r`, `f'` has no zero there: `f` is monotone and there is
-//!   a root iff `f(a)`, `f(b)` differ in sign; it is refined by safeguarded
-//!   Newton–bisection to full precision;
+//!   a root iff `f(a)`, `f(b)` differ in sign; it is refined to full
+//!   precision by safeguarded steps to the root of the Taylor parabola at the
+//!   current point (Newton's step where the parabola has none, bisection where
+//!   either leaves the bracket);
 //! * else if `|f(m)| > |f'(m)| r + M r²/2`, Taylor's bound excludes a root;
 //! * else if the parabola `f(m) + f'(m) s + (f''(m) − M₃ r/3) s²/2`,
 //!   `|f'''| ≤ M₃ = Σ |A_k ω_k³|`, stays on the side of `f(m)` on `|s| ≤ r`,
@@ -28,7 +30,12 @@
 //! At a midpoint the waves' sines and cosines come from the interval ends'
 //! (the phase is linear in `t`: the normalised sum of the ends' unit vectors),
 //! where a wave turns by at most π/2 over the interval; the tests carry
-//! `1e-13 Σ|A|` of slack on `f` for that (and `1e-13 Σ|A ω|` on `f'`).
+//! `1e-13 Σ|A|` of slack on `f` for that (and `1e-13 Σ|A ω|` on `f'`). Over
+//! the search's first, longer intervals the left end's are turned by the
+//! interval's half-width instead, one sine and cosine per depth for all its
+//! intervals; the points the phases stand for then drift from where `f` is
+//! evaluated by a few roundings of `t`, which the tests carry as slack too
+//! (`Σ|A ω|`, `M` and `M₃` times that drift on `f`, `f'` and `f''`).
 //!
 //! Both tests are rigorous bounds (up to rounding of `f`), so no crossing is
 //! missed except pairs closer than ~1e-13 relative (a ray touching a crest;
@@ -36,8 +43,8 @@
 //! is labelled below (`f < 0`) or above by the signs of `f` the search
 //! already has at its two ends (the ends of the intervals holding the roots
 //! that bound it); only where those disagree (rounding beside a near-double
-//! root) is `f` evaluated at its middle. The Newton iteration starts from the
-//! midpoint value the monotonicity test computed.
+//! root) is `f` evaluated at its middle. The refinement starts from the
+//! midpoint values the monotonicity test computed.
 //!
 //! **Optical depth** of any segment: `Σ_pieces σ_t,piece × length` — exact
 //! given the crossings. Infinite rays inside the slab (exactly horizontal) are
@@ -185,8 +192,15 @@ struct Search<'a, const C: usize> {
 /// `FAST_WAVES` waves), for [`Search::isolate`].
 type Phases = [(f64, f64); FAST_WAVES];
 
-/// An interval of [`Search::isolate`]: `(a, b, f(a), f(b))` and the phases at `a` and `b`.
-type Bracket = (f64, f64, f64, f64, Phases, Phases);
+/// An interval of [`Search::isolate`]: `(a, b, f(a), f(b))`, the phases at
+/// `a` and `b`, and its depth (0 for the whole interval, +1 per halving).
+type Bracket = (f64, f64, f64, f64, Phases, Phases, u32);
+
+/// Depths of [`Search::isolate`] whose midpoint phases may come from a
+/// rotation of the left end's by the depth's half-width
+/// ([`Search::phases_between`]); a chunk of a ray (`256/ω_max` long) needs
+/// at most 8.
+const ROTATED_DEPTHS: usize = 12;
 
 /// Layers with at most this many waves have their phases at an interval's
 /// midpoint found from its ends' ([`Search::phases_between`]).
@@ -209,13 +223,24 @@ impl<const C: usize> Search<'_, C> {
     /// the mean of the ends', whose unit vector bisects theirs when they are
     /// less than π apart — `(s_a + s_b, c_a + c_b)` normalised, a square root
     /// instead of a sine and cosine (which were most of the time of a low
-    /// lamp's light paths over dry ice). Waves that turn by more than π/2
-    /// over the interval are evaluated directly. Each halving adds a few ulp
-    /// of error to the unit vector (the bisector of two vectors is no worse
-    /// than they are), under 1e-13 over the search's depth: the tests of
+    /// lamp's light paths over dry ice). Each halving adds a few ulp of error
+    /// to the unit vector (the bisector of two vectors is no worse than they
+    /// are), under 1e-13 over the search's depth: the tests of
     /// [`Self::isolate`] carry that as slack.
+    ///
+    /// Waves that turn by more than π/2 over the interval (the search's
+    /// first few depths) are turned from the left end's phase by
+    /// `rotation = (sin, cos)(ω·r)`, `r` the depth's half-width, which all
+    /// the intervals of one depth share: one sine and cosine per depth
+    /// instead of one per interval (58 of a light path's 119 over dry ice
+    /// under a low lamp). There `m = a + r`; each such depth moves the
+    /// point a phase stands for from the one `f` is evaluated at by at most
+    /// one rounding of `a + r` (and of the interval's ends), which the
+    /// tests also carry as slack ([`Self::isolate`]). `None` where no wave
+    /// turns that far (or the depth has no rotation): every wave then takes
+    /// the bisector.
     #[inline]
-    fn phases_between(&self, a: &Phases, b: &Phases, span: f64, m: f64) -> Phases {
+    fn phases_between(&self, a: &Phases, b: &Phases, span: f64, m: f64, rotation: Option<&Phases>) -> Phases {
         let mut out = [(0.0, 1.0); FAST_WAVES];
         for (k, w) in self.layer.waves.iter().enumerate() {
             if self.omega[k].abs() * span <= std::f64::consts::FRAC_PI_2 {
@@ -224,6 +249,9 @@ impl<const C: usize> Search<'_, C> {
                 // than the rest of the evaluation.)
                 let inv = 1.0 / (s * s + c * c).sqrt();
                 out[k] = (s * inv, c * inv);
+            } else if let Some(rot) = rotation {
+                let ((sa, ca), (sr, cr)) = (a[k], rot[k]);
+                out[k] = (sa * cr + ca * sr, ca * cr - sa * sr);
             } else {
                 let (x, y) = (self.o.x + self.d.x * m, self.o.y + self.d.y * m);
                 out[k] = (w.kx * x + w.ky * y + w.phase).sin_cos();
@@ -248,6 +276,19 @@ impl<const C: usize> Search<'_, C> {
         (o.z + d.z * t - h, d.z - dh, d2f)
     }
 
+    /// `f` at `t` and the waves' phases there (none beyond
+    /// [`FAST_WAVES`] waves), for an end of [`Self::isolate`]'s interval;
+    /// the same `f` as [`Self::f_df`].
+    #[inline]
+    fn end_point(&mut self, t: f64) -> (f64, Phases) {
+        if self.layer.waves.len() <= FAST_WAVES {
+            let phases = self.phases_at(t);
+            (self.f_df_d2f_from(t, &phases).0, phases)
+        } else {
+            (self.f_df(t).0, [(0.0, 1.0); FAST_WAVES])
+        }
+    }
+
     #[inline]
     fn f_df(&mut self, t: f64) -> (f64, f64) {
         let (f, df, _) = self.f_df_d2f(t);
@@ -262,19 +303,36 @@ impl<const C: usize> Search<'_, C> {
         self.layer.height_above_along(self.o, self.d, t)
     }
 
-    /// Root of `f` in `[a, b]` where `f` is monotone and changes sign;
-    /// `mid` is `(f, f')` at the midpoint, where the iteration starts.
-    /// Newton's error after a step `s` is at most `|f''|/(2|f'|)·s²` (up to
-    /// the `O(s)` difference between `s` and the error before it): once that,
-    /// with `|f''| ≤ m_bound` and a factor 4 of slack, is below `ε|t|`, the
-    /// step's end is returned without evaluating `f` there once more.
-    fn refine(&mut self, a: f64, b: f64, fa: f64, mid: (f64, f64), m_bound: f64) -> f64 {
+    /// Root of `f` in `[a, b]` where `f` is monotone and changes sign; the
+    /// iteration starts at `m` inside, where `mid` is `(f, f', f'')` as the
+    /// search saw them (`None`: evaluated here).
+    ///
+    /// Each step goes to the root of the Taylor parabola at the current
+    /// point, `f + f' s + f'' s²/2 = 0` (`f''` costs nothing more than `f'`:
+    /// the same sines and cosines); where it has no root in the bracket,
+    /// Newton's step, else the bracket's midpoint. The parabola's root is
+    /// off the true one by at most `M₃|s|³/(6|f'|)` (Taylor's remainder,
+    /// `|f'''| ≤ m3_bound`), Newton's by `M|s|²/(2|f'|)` (`|f''| ≤ m_bound`),
+    /// each up to the `O(s)` difference between `|f'|` here and at the root:
+    /// once that, with a factor 4 of slack, is below `ε|t|`, the step's end
+    /// is returned without evaluating `f` there once more — never from the
+    /// search's own values at `m`, whose phases carry its slack. (Newton's
+    /// steps alone took 3.5 evaluations per crossing of a low lamp's light
+    /// paths over dry ice.)
+    fn refine(&mut self, (a, b, fa): (f64, f64, f64), m: f64, mid: Option<(f64, f64, f64)>, (m_bound, m3_bound): (f64, f64)) -> f64 {
         let (mut lo, mut hi) = if fa < 0.0 { (a, b) } else { (b, a) };
-        let mut t = 0.5 * (a + b);
-        let mut known = Some(mid);
+        let mut t = m;
+        let mut exact = mid.is_none();
+        let mut known = Some(mid.unwrap_or_else(|| self.f_df_d2f(m)));
         for _ in 0..200 {
-            let (f, df) = known.take().unwrap_or_else(|| self.f_df(t));
-            if f == 0.0 {
+            let (f, df, d2f) = match known.take() {
+                Some(v) => v,
+                None => {
+                    exact = true;
+                    self.f_df_d2f(t)
+                }
+            };
+            if f == 0.0 && exact {
                 return t;
             }
             if f < 0.0 {
@@ -283,14 +341,22 @@ impl<const C: usize> Search<'_, C> {
                 hi = t;
             }
             let (l, h) = (lo.min(hi), lo.max(hi));
+            // The parabola's root nearer 0, in the cancellation-free form.
+            let disc = df * df - 2.0 * f * d2f;
+            let q = df + disc.max(0.0).sqrt().copysign(df);
+            let parabola = t - 2.0 * f / q;
             let newton = t - f / df;
-            let is_newton = df != 0.0 && newton > l && newton < h;
-            let next = if is_newton { newton } else { 0.5 * (l + h) };
-            if is_newton {
+            let (next, bound) = if disc >= 0.0 && q != 0.0 && parabola > l && parabola < h {
+                let step = (parabola - t).abs();
+                (parabola, 4.0 * m3_bound / (6.0 * df.abs()) * step * step * step)
+            } else if df != 0.0 && newton > l && newton < h {
                 let step = newton - t;
-                if 2.0 * m_bound / df.abs() * step * step <= EPS * newton.abs() {
-                    return newton;
-                }
+                (newton, 2.0 * m_bound / df.abs() * step * step)
+            } else {
+                (0.5 * (l + h), f64::INFINITY)
+            };
+            if exact && bound <= EPS * next.abs() {
+                return next;
             }
             let width = h - l;
             if (next - t).abs() <= 2.0 * EPS * t.abs() || width <= 2.0 * EPS * (l.abs() + h.abs()) || next == l || next == h {
@@ -304,28 +370,40 @@ impl<const C: usize> Search<'_, C> {
     /// Roots of `f` in `(a, b)`, appended in increasing order, each with the
     /// sides just before and after it (`f < 0` at the ends of the interval
     /// that held it).
-    fn isolate(&mut self, a: f64, b: f64, fa: f64, fb: f64, (m_bound, m3_bound): (f64, f64), roots: &mut SmallVec<[Root; 8]>) {
+    /// `(a, f(a), phases at a)` and the same at `b` come from [`Self::end_point`].
+    fn isolate(
+        &mut self,
+        (a, fa, pa): (f64, f64, Phases),
+        (b, fb, pb): (f64, f64, Phases),
+        (m_bound, m3_bound): (f64, f64),
+        roots: &mut SmallVec<[Root; 8]>,
+    ) {
         // Midpoint phases from the ends' ([`Self::phases_between`]) where the
         // layer has few waves, with their rounding as slack on `f` and `f'`.
         let fast = self.layer.waves.len() <= FAST_WAVES;
-        let (slack_f, slack_df) = if fast {
+        // The rotated depths' drift: each moves the point a phase stands for
+        // by at most two roundings at the interval's largest |t| (the
+        // midpoint `a + r`, and the interval's width against `2r`), which
+        // changes `f` by at most `Σ|A ω|` per metre, `f'` by `M` and `f''`
+        // by `M₃`.
+        let drift = 2.0 * (ROTATED_DEPTHS as f64 + 1.0) * EPS * a.abs().max(b.abs());
+        let omega_max = self.omega.iter().take(self.layer.waves.len()).fold(0.0f64, |m, w| m.max(w.abs()));
+        let (slack_f, slack_df, slack_d2f) = if fast {
             let (mut sf, mut sdf) = (0.0, 0.0);
             for (w, om) in self.layer.waves.iter().zip(self.omega) {
                 sf += w.amplitude.abs();
                 sdf += (w.amplitude * om).abs();
             }
-            (1e-13 * sf, 1e-13 * sdf)
+            (1e-13 * sf + sdf * drift, 1e-13 * sdf + m_bound * drift, m3_bound * drift)
         } else {
-            (0.0, 0.0)
+            (0.0, 0.0, 0.0)
         };
         let no_phases = [(0.0, 1.0); FAST_WAVES];
-        let (pa, pb) = if fast {
-            (self.phases_at(a), self.phases_at(b))
-        } else {
-            (no_phases, no_phases)
-        };
-        let mut stack: SmallVec<[Bracket; 32]> = smallvec![(a, b, fa, fb, pa, pb)];
-        while let Some((a, b, fa, fb, pa, pb)) = stack.pop() {
+        // Per rotated depth: its half-width and the waves' (sin, cos)(ω·r).
+        let half_width = 0.5 * (b - a);
+        let mut rotations: [Option<Phases>; ROTATED_DEPTHS] = [None; ROTATED_DEPTHS];
+        let mut stack: SmallVec<[Bracket; 32]> = smallvec![(a, b, fa, fb, pa, pb, 0)];
+        while let Some((a, b, fa, fb, pa, pb, depth)) = stack.pop() {
             let change = (fa < 0.0) != (fb < 0.0);
             let tiny = 1e-13 * (1.0 + a.abs() + b.abs());
             if b - a <= tiny {
@@ -338,10 +416,28 @@ impl<const C: usize> Search<'_, C> {
                 }
                 continue;
             }
-            let m = 0.5 * (a + b);
-            let r = 0.5 * (b - a);
+            let mut m = 0.5 * (a + b);
+            let mut r = 0.5 * (b - a);
             let (pm, (fm, dfm, d2fm)) = if fast {
-                let pm = self.phases_between(&pa, &pb, b - a, m);
+                // A rotated depth: some wave turns by more than π/2 over the
+                // interval (its half-width `depth_r`: exact halvings).
+                let rotated = (depth as usize) < ROTATED_DEPTHS && omega_max * (b - a) > std::f64::consts::FRAC_PI_2;
+                let depth_r = if rotated { half_width / (1u64 << depth) as f64 } else { 0.0 };
+                let rotation = if rotated && a + depth_r > a && a + depth_r < b {
+                    m = a + depth_r;
+                    r = (m - a).max(b - m);
+                    let omega = self.omega;
+                    Some(*rotations[depth as usize].get_or_insert_with(|| {
+                        let mut rot = [(0.0, 1.0); FAST_WAVES];
+                        for (slot, om) in rot.iter_mut().zip(omega) {
+                            *slot = (om * depth_r).sin_cos();
+                        }
+                        rot
+                    }))
+                } else {
+                    None
+                };
+                let pm = self.phases_between(&pa, &pb, b - a, m, rotation.as_ref());
                 let v = self.f_df_d2f_from(m, &pm);
                 (pm, v)
             } else {
@@ -349,7 +445,10 @@ impl<const C: usize> Search<'_, C> {
             };
             if dfm.abs() > m_bound * r + slack_df {
                 if change {
-                    let t = self.refine(a, b, fa, (fm, dfm), m_bound);
+                    // (The midpoint's values where their error cannot flip
+                    // the sign that brackets the root, else `f` there anew.)
+                    let mid = (fm.abs() > slack_f).then_some((fm, dfm, d2fm));
+                    let t = self.refine((a, b, fa), m, mid, (m_bound, m3_bound));
                     roots.push(Root {
                         t,
                         below_before: fa < 0.0,
@@ -370,12 +469,14 @@ impl<const C: usize> Search<'_, C> {
             // below `f(m)`, decides (a light path grazing the crests: most
             // of the evaluations of a low lamp over dry ice).
             let sign = if fm > 0.0 { 1.0 } else { -1.0 };
-            if !change && least_on_interval(sign * fm - slack_f, sign * dfm, sign * d2fm, (m_bound, m3_bound), r) - slack_df * r > 0.0 {
+            if !change
+                && least_on_interval(sign * fm - slack_f, sign * dfm, sign * d2fm - slack_d2f, (m_bound, m3_bound), r) - slack_df * r > 0.0
+            {
                 continue;
             }
             // Right half first: the left half is popped (and its roots pushed) first.
-            stack.push((m, b, fm, fb, pm, pb));
-            stack.push((a, m, fa, fm, pa, pm));
+            stack.push((m, b, fm, fb, pm, pb, depth + 1));
+            stack.push((a, m, fa, fm, pa, pm, depth + 1));
         }
     }
 }
@@ -703,9 +804,11 @@ impl<const C: usize> HeightFieldLayer<C> {
         let mut t = p;
         let mut roots: SmallVec<[Root; 8]> = SmallVec::new();
         let mut last_below = None;
+        // `f` and the phases at `t`: the last chunk's end after the first.
+        let mut at_t = None;
         while t < q {
             let e = if q - t > chunk { t + chunk } else { q };
-            let (ft, _) = s.f_df(if t.is_finite() { t } else { 0.0 });
+            let (ft, pt) = at_t.take().unwrap_or_else(|| s.end_point(if t.is_finite() { t } else { 0.0 }));
             if !e.is_finite() {
                 // f does not vary along the ray (no wave changes along it and
                 // d_z = 0): one side all the way.
@@ -713,9 +816,10 @@ impl<const C: usize> HeightFieldLayer<C> {
                 push(out, t, e, below);
                 return;
             }
-            let (fe, _) = s.f_df(e);
+            let (fe, pe) = s.end_point(e);
+            at_t = Some((fe, pe));
             roots.clear();
-            s.isolate(t, e, ft, fe, (m_bound, m3_bound), &mut roots);
+            s.isolate((t, ft, pt), (e, fe, pe), (m_bound, m3_bound), &mut roots);
             // A piece's side: the sign of `f` at its two ends as the search
             // saw them (just after the root that opens it, just before the
             // one that closes it) when they agree, else at its middle. They
@@ -1048,7 +1152,7 @@ mod tests {
                 if m <= a || m >= b {
                     break;
                 }
-                let pm = s.phases_between(&pa, &pb, b - a, m);
+                let pm = s.phases_between(&pa, &pb, b - a, m, None);
                 let direct = s.phases_at(m);
                 for w in 0..3 {
                     worst = worst.max((pm[w].0 - direct[w].0).abs()).max((pm[w].1 - direct[w].1).abs());
@@ -1061,5 +1165,79 @@ mod tests {
             }
         }
         assert!(worst < 1e-13, "{worst:e}");
+    }
+
+    #[test]
+    fn rotated_midpoint_phases_stay_within_the_drift_slack() {
+        // The search's first depths over long light paths (up to 200 m, a
+        // wave 0.55 m long), towards points on either side: the phases turned
+        // from the left end's by each depth's half-width, then bisected,
+        // against direct sines and cosines at the point `f` is evaluated
+        // at. Their difference, per radian per metre of `ω`, must stay within
+        // the drift `isolate` carries as slack (plus the bisector's 1e-13).
+        let side = Side {
+            scattering: [1.0],
+            extinction: [1.0],
+            phase: PhaseFunction::Isotropic,
+        };
+        let waves = vec![
+            Wave::new(0.1, 2.3, 15.0, 0.0),
+            Wave::new(0.06, 1.1, 100.0, 40.0),
+            Wave::new(0.03, 0.55, -50.0, 120.0),
+        ];
+        let layer = HeightFieldLayer::new("t".into(), 0.35, waves, side.clone(), side, 1e-3);
+        let (mut worst, mut rotated) = (0.0f64, 0usize);
+        for k in 0..60 {
+            let d = DVec3::new((k as f64 * 0.7).cos(), (k as f64 * 0.7).sin(), 0.01).normalize();
+            let mut omega = [0.0; FAST_WAVES];
+            for (slot, w) in omega.iter_mut().zip(&layer.waves) {
+                *slot = w.kx * d.x + w.ky * d.y;
+            }
+            let s = Search {
+                layer: &layer,
+                o: DVec3::new(-3.0 + 0.1 * k as f64, 1.0, 0.4),
+                d,
+                evals: 0,
+                omega,
+            };
+            let omega_max = omega.iter().fold(0.0f64, |m, w| m.max(w.abs()));
+            let len = [6.0, 40.0, 200.0][k % 3];
+            let drift = 2.0 * (ROTATED_DEPTHS as f64 + 1.0) * EPS * len;
+            let target = len * (0.37 * (k / 3) as f64 / 20.0 + 0.123_456_789);
+            let (mut a, mut b) = (0.0, len);
+            let half_width = 0.5 * (b - a);
+            let (mut pa, mut pb) = (s.phases_at(a), s.phases_at(b));
+            for depth in 0..60 {
+                let depth_r = half_width * 0.5f64.powi(depth);
+                let turns = omega_max * (b - a) > std::f64::consts::FRAC_PI_2 && (depth as usize) < ROTATED_DEPTHS;
+                let (m, rotation) = if turns {
+                    let mut rot = [(0.0, 1.0); FAST_WAVES];
+                    for (slot, om) in rot.iter_mut().zip(omega) {
+                        *slot = (om * depth_r).sin_cos();
+                    }
+                    rotated += 1;
+                    (a + depth_r, Some(rot))
+                } else {
+                    (0.5 * (a + b), None)
+                };
+                if m <= a || m >= b {
+                    break;
+                }
+                let pm = s.phases_between(&pa, &pb, b - a, m, rotation.as_ref());
+                let direct = s.phases_at(m);
+                for w in 0..3 {
+                    let diff = (pm[w].0 - direct[w].0).abs().max((pm[w].1 - direct[w].1).abs());
+                    worst = worst.max(diff / (1e-13 + omega[w].abs() * drift));
+                }
+                if target < m {
+                    (b, pb) = (m, pm);
+                } else {
+                    (a, pa) = (m, pm);
+                }
+            }
+        }
+        assert!(rotated > 60 * 4, "{rotated} rotated depths");
+        assert!(worst <= 1.0, "phase error {worst:.3}× the slack");
+        eprintln!("rotated depths: {rotated}, worst phase error {worst:.3}× the slack");
     }
 }
