@@ -176,8 +176,8 @@ fn height_field_optical_depths_match_brute_force() {
     }
     // Long light paths that stay in the slab for 40–200 m (a low lamp far
     // across the stage): the crossing search's first depths turn the phases
-    // from the interval's left end, where `t` is largest (its rounding is
-    // their slack).
+    // from each interval's left end, and at large `t` the rounding of the
+    // points they stand for is their slack.
     for k in 0..6 {
         let a = rng.range(0.0, std::f64::consts::TAU);
         let z0 = BASE + rng.range(-0.1, 0.1);

@@ -44,7 +44,8 @@
 //! already has at its two ends (the ends of the intervals holding the roots
 //! that bound it); only where those disagree (rounding beside a near-double
 //! root) is `f` evaluated at its middle. The refinement starts from the
-//! midpoint values the monotonicity test computed.
+//! midpoint values the monotonicity test computed, where their slack cannot
+//! flip the sign that brackets the root.
 //!
 //! **Optical depth** of any segment: `Σ_pieces σ_t,piece × length` — exact
 //! given the crossings. Infinite rays inside the slab (exactly horizontal) are
@@ -202,6 +203,10 @@ type Bracket = (f64, f64, f64, f64, Phases, Phases, u32);
 /// at most 8.
 const ROTATED_DEPTHS: usize = 12;
 
+/// A bound on [`Search::isolate`]'s depth for its drift slack: its intervals
+/// stop at `1e-13` of `1 + |a| + |b|`, at most ≈ 44 halvings of any interval.
+const SEARCH_DEPTHS: f64 = 64.0;
+
 /// Layers with at most this many waves have their phases at an interval's
 /// midpoint found from its ends' ([`Search::phases_between`]).
 const FAST_WAVES: usize = 6;
@@ -233,10 +238,10 @@ impl<const C: usize> Search<'_, C> {
     /// `rotation = (sin, cos)(ω·r)`, `r` the depth's half-width, which all
     /// the intervals of one depth share: one sine and cosine per depth
     /// instead of one per interval (58 of a light path's 119 over dry ice
-    /// under a low lamp). There `m = a + r`; each such depth moves the
-    /// point a phase stands for from the one `f` is evaluated at by at most
-    /// one rounding of `a + r` (and of the interval's ends), which the
-    /// tests also carry as slack ([`Self::isolate`]). `None` where no wave
+    /// under a low lamp). There `m = a + r`, and the phases stand for the
+    /// point `a + r` exactly, while `f` is evaluated at its rounding; the
+    /// drift this adds up along the search is carried as slack
+    /// ([`Self::isolate`]). `None` where no wave
     /// turns that far (or the depth has no rotation): every wave then takes
     /// the bisector.
     #[inline]
@@ -305,7 +310,8 @@ impl<const C: usize> Search<'_, C> {
 
     /// Root of `f` in `[a, b]` where `f` is monotone and changes sign; the
     /// iteration starts at `m` inside, where `mid` is `(f, f', f'')` as the
-    /// search saw them (`None`: evaluated here).
+    /// search saw them and whether those are exact (not from its phases,
+    /// which carry its slack); `None`: evaluated here.
     ///
     /// Each step goes to the root of the Taylor parabola at the current
     /// point, `f + f' s + f'' s²/2 = 0` (`f''` costs nothing more than `f'`:
@@ -315,15 +321,21 @@ impl<const C: usize> Search<'_, C> {
     /// `|f'''| ≤ m3_bound`), Newton's by `M|s|²/(2|f'|)` (`|f''| ≤ m_bound`),
     /// each up to the `O(s)` difference between `|f'|` here and at the root:
     /// once that, with a factor 4 of slack, is below `ε|t|`, the step's end
-    /// is returned without evaluating `f` there once more — never from the
-    /// search's own values at `m`, whose phases carry its slack. (Newton's
+    /// is returned without evaluating `f` there once more — this rule is not
+    /// applied to the search's inexact values at `m`. (Newton's
     /// steps alone took 3.5 evaluations per crossing of a low lamp's light
     /// paths over dry ice.)
-    fn refine(&mut self, (a, b, fa): (f64, f64, f64), m: f64, mid: Option<(f64, f64, f64)>, (m_bound, m3_bound): (f64, f64)) -> f64 {
+    fn refine(
+        &mut self,
+        (a, b, fa): (f64, f64, f64),
+        m: f64,
+        mid: Option<((f64, f64, f64), bool)>,
+        (m_bound, m3_bound): (f64, f64),
+    ) -> f64 {
         let (mut lo, mut hi) = if fa < 0.0 { (a, b) } else { (b, a) };
         let mut t = m;
-        let mut exact = mid.is_none();
-        let mut known = Some(mid.unwrap_or_else(|| self.f_df_d2f(m)));
+        let (mid, mut exact) = mid.unwrap_or_else(|| (self.f_df_d2f(m), true));
+        let mut known = Some(mid);
         for _ in 0..200 {
             let (f, df, d2f) = match known.take() {
                 Some(v) => v,
@@ -381,12 +393,16 @@ impl<const C: usize> Search<'_, C> {
         // Midpoint phases from the ends' ([`Self::phases_between`]) where the
         // layer has few waves, with their rounding as slack on `f` and `f'`.
         let fast = self.layer.waves.len() <= FAST_WAVES;
-        // The rotated depths' drift: each moves the point a phase stands for
-        // by at most two roundings at the interval's largest |t| (the
-        // midpoint `a + r`, and the interval's width against `2r`), which
-        // changes `f` by at most `Σ|A ω|` per metre, `f'` by `M` and `f''`
-        // by `M₃`.
-        let drift = 2.0 * (ROTATED_DEPTHS as f64 + 1.0) * EPS * a.abs().max(b.abs());
+        // The drift between the point a midpoint's phases stand for and the
+        // point `f` is evaluated at: every depth, turned (`a + r` rounded) or
+        // bisected (`(a + b)/2` rounded, the phases then at the mean of what
+        // the ends' stand for), adds at most half an ulp at the chunk's
+        // largest |t|, so at most `SEARCH_DEPTHS/2` of them in all, plus the
+        // ends' own. It changes `f` by at most `Σ|A ω|` per metre, `f'` by
+        // `M` and `f''` by `M₃`. (The bisected depths' share was never in
+        // the 1e-13 slack: 2.5e-13 rad per rounding at 200 m for a wave
+        // 0.55 m long.)
+        let drift = (0.5 * SEARCH_DEPTHS + 2.0) * EPS * a.abs().max(b.abs());
         let omega_max = self.omega.iter().take(self.layer.waves.len()).fold(0.0f64, |m, w| m.max(w.abs()));
         let (slack_f, slack_df, slack_d2f) = if fast {
             let (mut sf, mut sdf) = (0.0, 0.0);
@@ -448,7 +464,7 @@ impl<const C: usize> Search<'_, C> {
                     // (The midpoint's values where their error cannot flip
                     // the sign that brackets the root, else `f` there anew.)
                     let mid = (fm.abs() > slack_f).then_some((fm, dfm, d2fm));
-                    let t = self.refine((a, b, fa), m, mid, (m_bound, m3_bound));
+                    let t = self.refine((a, b, fa), m, mid.map(|v| (v, !fast)), (m_bound, m3_bound));
                     roots.push(Root {
                         t,
                         below_before: fa < 0.0,
@@ -540,11 +556,11 @@ impl<const C: usize> HeightFieldLayer<C> {
         (z - h, d.z - dh, d2f)
     }
 
-    /// Boundary height at `(x, y)`, m.
+    /// Boundary height at `(x, y)`, m (the sines of the crossing search's, [`sin_cos`]).
     pub fn height(&self, x: f64, y: f64) -> f64 {
         let mut h = self.base;
         for w in &self.waves {
-            h += w.amplitude * (w.kx * x + w.ky * y + w.phase).sin();
+            h += w.amplitude * sin_cos(w.kx * x + w.ky * y + w.phase).0;
         }
         h
     }
@@ -1178,12 +1194,14 @@ mod tests {
 
     #[test]
     fn rotated_midpoint_phases_stay_within_the_drift_slack() {
-        // The search's first depths over long light paths (up to 200 m, a
-        // wave 0.55 m long), towards points on either side: the phases turned
-        // from the left end's by each depth's half-width, then bisected,
-        // against direct sines and cosines at the point `f` is evaluated
-        // at. Their difference, per radian per metre of `ω`, must stay within
-        // the drift `isolate` carries as slack (plus the bisector's 1e-13).
+        // The search as `slab_pieces` runs it on long light paths: chunks
+        // `256/ω_max` long starting up to 200 m along the path (a wave
+        // 0.55 m long), each halved 60 times towards points across the
+        // whole chunk, turning the phases at the first depths and bisecting
+        // them below, as `isolate` does. Against direct sines and cosines at
+        // the point `f` is evaluated at, per radian per metre of `ω`, the
+        // phases must stay within the drift `isolate` carries as slack (plus
+        // the bisector's 1e-13).
         let side = Side {
             scattering: [1.0],
             extinction: [1.0],
@@ -1196,7 +1214,7 @@ mod tests {
         ];
         let layer = HeightFieldLayer::new("t".into(), 0.35, waves, side.clone(), side, 1e-3);
         let (mut worst, mut rotated) = (0.0f64, 0usize);
-        for k in 0..60 {
+        for k in 0..120 {
             let d = DVec3::new((k as f64 * 0.7).cos(), (k as f64 * 0.7).sin(), 0.01).normalize();
             let mut omega = [0.0; FAST_WAVES];
             for (slot, w) in omega.iter_mut().zip(&layer.waves) {
@@ -1210,19 +1228,19 @@ mod tests {
                 omega,
             };
             let omega_max = omega.iter().fold(0.0f64, |m, w| m.max(w.abs()));
-            let len = [6.0, 40.0, 200.0][k % 3];
-            let drift = 2.0 * (ROTATED_DEPTHS as f64 + 1.0) * EPS * len;
-            let target = len * (0.37 * (k / 3) as f64 / 20.0 + 0.123_456_789);
-            let (mut a, mut b) = (0.0, len);
+            let start = [0.0, 3.7, 41.3, 187.9][k % 4];
+            let (mut a, mut b) = (start, start + 256.0 / omega_max);
+            let drift = (0.5 * SEARCH_DEPTHS + 2.0) * EPS * a.abs().max(b.abs());
+            let target = a + (b - a) * ((k / 4) as f64 + 0.123_456_789) / 30.0;
             let half_width = 0.5 * (b - a);
             let (mut pa, mut pb) = (s.phases_at(a), s.phases_at(b));
             for depth in 0..60 {
-                let depth_r = half_width * 0.5f64.powi(depth);
                 let turns = omega_max * (b - a) > std::f64::consts::FRAC_PI_2 && (depth as usize) < ROTATED_DEPTHS;
                 let (m, rotation) = if turns {
+                    let depth_r = half_width / (1u64 << depth) as f64;
                     let mut rot = [(0.0, 1.0); FAST_WAVES];
                     for (slot, om) in rot.iter_mut().zip(omega) {
-                        *slot = (om * depth_r).sin_cos();
+                        *slot = sin_cos(om * depth_r);
                     }
                     rotated += 1;
                     (a + depth_r, Some(rot))
@@ -1245,7 +1263,7 @@ mod tests {
                 }
             }
         }
-        assert!(rotated > 60 * 4, "{rotated} rotated depths");
+        assert!(rotated > 120 * 6, "{rotated} rotated depths");
         assert!(worst <= 1.0, "phase error {worst:.3}× the slack");
         eprintln!("rotated depths: {rotated}, worst phase error {worst:.3}× the slack");
     }
