@@ -1138,12 +1138,8 @@ impl<const C: usize> HeightFieldLayer<C> {
 mod tests {
     use super::*;
 
-    #[test]
-    fn midpoint_phases_stay_within_the_slack_over_a_deep_search() {
-        // Halving towards a point 60 times, the phases from the ends' stay
-        // within 1e-13 of direct sines and cosines (the slack the tests of
-        // `isolate` carry on `f`, per unit amplitude; measured 8.4e-14, most
-        // of it the direct ones' own rounding of phases up to 750 rad).
+    /// The dry-ice waves of the demo, the shortest `short_wavelength` m long.
+    fn three_waves(short_wavelength: f64) -> HeightFieldLayer<1> {
         let side = Side {
             scattering: [1.0],
             extinction: [1.0],
@@ -1152,23 +1148,38 @@ mod tests {
         let waves = vec![
             Wave::new(0.1, 2.3, 15.0, 0.0),
             Wave::new(0.06, 1.1, 100.0, 40.0),
-            Wave::new(0.03, 0.05, -50.0, 120.0),
+            Wave::new(0.03, short_wavelength, -50.0, 120.0),
         ];
-        let layer = HeightFieldLayer::new("t".into(), 0.35, waves, side.clone(), side, 1e-3);
+        HeightFieldLayer::new("t".into(), 0.35, waves, side.clone(), side, 1e-3)
+    }
+
+    /// The `k`-th test path's search: its direction turns by 0.7 rad per
+    /// `k`, rising by `dz` per unit of horizontal length.
+    fn search_along(layer: &HeightFieldLayer<1>, k: usize, dz: f64) -> Search<'_, 1> {
+        let d = DVec3::new((k as f64 * 0.7).cos(), (k as f64 * 0.7).sin(), dz).normalize();
+        let mut omega = [0.0; FAST_WAVES];
+        for (slot, w) in omega.iter_mut().zip(&layer.waves) {
+            *slot = w.kx * d.x + w.ky * d.y;
+        }
+        Search {
+            layer,
+            o: DVec3::new(-3.0 + 0.1 * k as f64, 1.0, 0.4),
+            d,
+            evals: 0,
+            omega,
+        }
+    }
+
+    #[test]
+    fn midpoint_phases_stay_within_the_slack_over_a_deep_search() {
+        // Halving towards a point 60 times, the phases from the ends' stay
+        // within 1e-13 of direct sines and cosines (the slack the tests of
+        // `isolate` carry on `f`, per unit amplitude; measured 8.4e-14, most
+        // of it the direct ones' own rounding of phases up to 750 rad).
+        let layer = three_waves(0.05);
         let mut worst = 0.0f64;
         for k in 0..50 {
-            let d = DVec3::new((k as f64 * 0.7).cos(), (k as f64 * 0.7).sin(), 0.05).normalize();
-            let mut omega = [0.0; FAST_WAVES];
-            for (slot, w) in omega.iter_mut().zip(&layer.waves) {
-                *slot = w.kx * d.x + w.ky * d.y;
-            }
-            let s = Search {
-                layer: &layer,
-                o: DVec3::new(-3.0 + 0.1 * k as f64, 1.0, 0.4),
-                d,
-                evals: 0,
-                omega,
-            };
+            let s = search_along(&layer, k, 0.05);
             let target = 0.37 * k as f64 / 50.0 + 0.123_456_789;
             let (mut a, mut b) = (0.0, 6.0);
             let (mut pa, mut pb) = (s.phases_at(a), s.phases_at(b));
@@ -1202,31 +1213,11 @@ mod tests {
         // the point `f` is evaluated at, per radian per metre of `ω`, the
         // phases must stay within the drift `isolate` carries as slack (plus
         // the bisector's 1e-13).
-        let side = Side {
-            scattering: [1.0],
-            extinction: [1.0],
-            phase: PhaseFunction::Isotropic,
-        };
-        let waves = vec![
-            Wave::new(0.1, 2.3, 15.0, 0.0),
-            Wave::new(0.06, 1.1, 100.0, 40.0),
-            Wave::new(0.03, 0.55, -50.0, 120.0),
-        ];
-        let layer = HeightFieldLayer::new("t".into(), 0.35, waves, side.clone(), side, 1e-3);
+        let layer = three_waves(0.55);
         let (mut worst, mut rotated) = (0.0f64, 0usize);
         for k in 0..120 {
-            let d = DVec3::new((k as f64 * 0.7).cos(), (k as f64 * 0.7).sin(), 0.01).normalize();
-            let mut omega = [0.0; FAST_WAVES];
-            for (slot, w) in omega.iter_mut().zip(&layer.waves) {
-                *slot = w.kx * d.x + w.ky * d.y;
-            }
-            let s = Search {
-                layer: &layer,
-                o: DVec3::new(-3.0 + 0.1 * k as f64, 1.0, 0.4),
-                d,
-                evals: 0,
-                omega,
-            };
+            let s = search_along(&layer, k, 0.01);
+            let omega = s.omega;
             let omega_max = omega.iter().fold(0.0f64, |m, w| m.max(w.abs()));
             let start = [0.0, 3.7, 41.3, 187.9][k % 4];
             let (mut a, mut b) = (start, start + 256.0 / omega_max);
