@@ -442,10 +442,10 @@ impl<const C: usize> Search<'_, C> {
                 let rotation = if rotated && a + depth_r > a && a + depth_r < b {
                     m = a + depth_r;
                     r = (m - a).max(b - m);
-                    let omega = self.omega;
+                    let (omega, waves) = (self.omega, self.layer.waves.len());
                     Some(*rotations[depth as usize].get_or_insert_with(|| {
                         let mut rot = [(0.0, 1.0); FAST_WAVES];
-                        for (slot, om) in rot.iter_mut().zip(omega) {
+                        for (slot, om) in rot.iter_mut().zip(omega).take(waves) {
                             *slot = sin_cos(om * depth_r);
                         }
                         rot
