@@ -238,12 +238,11 @@ impl<const C: usize> Search<'_, C> {
     /// `rotation = (sin, cos)(ω·r)`, `r` the depth's half-width, which all
     /// the intervals of one depth share: one sine and cosine per depth
     /// instead of one per interval (58 of a light path's 119 over dry ice
-    /// under a low lamp). There `m = a + r`, and the phases stand for the
-    /// point `a + r` exactly, while `f` is evaluated at its rounding; the
-    /// drift this adds up along the search is carried as slack
-    /// ([`Self::isolate`]). `None` where no wave
-    /// turns that far (or the depth has no rotation): every wave then takes
-    /// the bisector.
+    /// under a low lamp). There `m = a + r`: the phases are the left end's
+    /// turned by exactly `r`, while `f` is evaluated at the rounding of
+    /// `a + r`; the drift this adds up along the search is carried as slack
+    /// ([`Self::isolate`]). `None` where no wave turns that far (or the
+    /// depth has no rotation): every wave then takes the bisector.
     #[inline]
     fn phases_between(&self, a: &Phases, b: &Phases, span: f64, m: f64, rotation: Option<&Phases>) -> Phases {
         let mut out = [(0.0, 1.0); FAST_WAVES];
