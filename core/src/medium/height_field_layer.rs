@@ -38,8 +38,11 @@
 //! (`Σ|A ω|`, `M` and `M₃` times that drift on `f`, `f'` and `f''`).
 //!
 //! Both tests are rigorous bounds (up to rounding of `f`), so no crossing is
-//! missed except pairs closer than ~1e-13 relative (a ray touching a crest;
-//! the misclassified length is below that width). Each piece between roots
+//! missed except a pair so close that `f` between them is within its
+//! rounding (a ray touching a crest): a point there may take the wrong sign,
+//! and such a pair, about `2√(2δ/f'')` apart for a rounding `δ` of `f`, can
+//! be missed (≈ 1e-7–1e-6 m for the demo's waves; the misclassified length
+//! is that width). Each piece between roots
 //! is labelled below (`f < 0`) or above by the signs of `f` the search
 //! already has at its two ends (the ends of the intervals holding the roots
 //! that bound it); only where those disagree (rounding beside a near-double
@@ -414,7 +417,7 @@ impl<const C: usize> Search<'_, C> {
             (0.0, 0.0, 0.0)
         };
         let no_phases = [(0.0, 1.0); FAST_WAVES];
-        // Per rotated depth: its half-width and the waves' (sin, cos)(ω·r).
+        // Per rotated depth: the waves' (sin, cos)(ω·r), `r` its half-width.
         let half_width = 0.5 * (b - a);
         let mut rotations: [Option<Phases>; ROTATED_DEPTHS] = [None; ROTATED_DEPTHS];
         let mut stack: SmallVec<[Bracket; 32]> = smallvec![(a, b, fa, fb, pa, pb, 0)];
