@@ -132,13 +132,14 @@ def test_unlit_tiles_are_left_out_without_changing_a_pixel(name: str) -> None:
     not traced. Tracing every pixel instead (skip_unlit_tiles false) gives the
     same in-scatter, per-light and error layers bit for bit, so every left-out
     pixel is exactly 0 and none of its neighbours' filtering changed. A camera
-    inside a beam has no unlit tile. (Without the per-light layer, the
-    interpolation of smooth pixels needs unlit tiles on: it is off on both
+    inside a beam has no unlit tile. (The interpolation of smooth pixels
+    needs unlit tiles on when no layer needs every ray: it is off on both
     sides here, and tested below.)"""
     scene = json.loads((DATA / f"{name}.json").read_text())
     layers = ["inscatter", "inscatter_per_light", "error"]
-    skipped, report = _render_layers(scene, layers=layers, tolerance=0.05)
-    traced, full_report = _render_layers(scene, layers=layers, tolerance=0.05, skip_unlit_tiles=False)
+    plain = {"tolerance": 0.05, "interpolate_smooth_pixels": False}
+    skipped, report = _render_layers(scene, layers=layers, **plain)
+    traced, full_report = _render_layers(scene, layers=layers, skip_unlit_tiles=False, **plain)
     assert report["stats"]["pixels_interpolated"] == 0
     assert sorted(skipped) == sorted(traced)
     for k in skipped:
@@ -152,7 +153,7 @@ def test_unlit_tiles_are_left_out_without_changing_a_pixel(name: str) -> None:
         assert unlit > 0.2 * skipped["inscatter"].shape[0] * skipped["inscatter"].shape[1]
         assert left_out and str(unlit) in left_out[0]["what"]
     # Asking for a layer that needs every ray (depth) traces every pixel.
-    _, with_depth = _render_layers(scene, layers=["inscatter", "depth"], tolerance=0.05)
+    _, with_depth = _render_layers(scene, layers=["inscatter", "depth"], **plain)
     assert with_depth["stats"]["pixels_unlit"] == 0
 
 
@@ -281,6 +282,89 @@ def test_interpolated_pixels_are_within_their_estimate(name: str, scale: int) ->
         assert np.isfinite(got).all() and np.isfinite(est).all()
         assert interpolated > 0 and changed.sum() > 0
         assert any("interpolated" in e["why"] for e in report["plan"]["left_out"])
+
+
+def _faceted_sphere(centre: tuple[float, float, float], radius: float, rings: int, segments: int) -> dict:
+    """A UV sphere mesh: a plane per facet, so its shadow is bounded by a
+    ball, not by per-plane pyramids (render::smooth::ShadowBall)."""
+    positions = [[centre[0], centre[1], centre[2] + radius], [centre[0], centre[1], centre[2] - radius]]
+    for i in range(1, rings):
+        theta = np.pi * i / rings
+        for j in range(segments):
+            phi = 2 * np.pi * j / segments
+            positions.append(
+                [
+                    centre[0] + radius * np.sin(theta) * np.cos(phi),
+                    centre[1] + radius * np.sin(theta) * np.sin(phi),
+                    centre[2] + radius * np.cos(theta),
+                ]
+            )
+    ring = lambda i, j: 2 + (i - 1) * segments + j % segments  # noqa: E731
+    triangles = []
+    for j in range(segments):
+        triangles.append([0, ring(1, j), ring(1, j + 1)])
+        triangles.append([1, ring(rings - 1, j + 1), ring(rings - 1, j)])
+        for i in range(1, rings - 1):
+            triangles.append([ring(i, j), ring(i + 1, j), ring(i + 1, j + 1)])
+            triangles.append([ring(i, j), ring(i + 1, j + 1), ring(i, j + 1)])
+    return {"name": "ball", "positions": positions, "triangles": triangles}
+
+
+@pytest.mark.parametrize(
+    ("name", "scale", "sphere"),
+    [("two_coloured_spots", 2, False), ("two_coloured_spots", 2, True), ("spot_box_occluder", 2, False)],
+)
+def test_interpolation_with_transmittance_depth_and_per_light_layers(name: str, scale: int, sphere: bool) -> None:
+    """With layers that need every ray (transmittance, depth) and per-light
+    in-scatter, smooth pixels are still interpolated: their transmittance and
+    depth come from their own ray (the same bits as with every pixel
+    traced), the in-scatter as before, and each light's layer from its own
+    samples, interpolated only where every light meets the tolerance too.
+    Against every pixel traced to 1e-7: every changed pixel is within its
+    estimate and the tolerance, every light's layer within the tolerance of
+    that light's value, and the lights sum to the in-scatter. With a faceted
+    sphere (288 planes) in both beams, its shadow is bounded by a ball: rays
+    that pass clear of it are still interpolated."""
+    scene = _scaled(name, scale)
+    if sphere:
+        scene["meshes"].append(_faceted_sphere((0.0, 0.0, 2.5), 0.8, 12, 12))
+    layers = ["inscatter", "transmittance", "depth", "error", "inscatter_per_light"]
+    none = {"type": "none"}
+    exact, _ = _render_layers(
+        scene, layers=layers, tolerance=1e-7, pixel_filter=none, interpolate_smooth_pixels=False
+    )
+    per_light = sorted(k for k in exact if k.startswith("inscatter."))
+    assert len(per_light) == len(scene["lights"])
+    for tol in (0.01, 1e-3):
+        on, report = _render_layers(scene, layers=layers, tolerance=tol, pixel_filter=none)
+        off, _ = _render_layers(scene, layers=layers, tolerance=tol, pixel_filter=none, interpolate_smooth_pixels=False)
+        for k in ("transmittance", "depth"):
+            assert np.array_equal(on[k], off[k]), k
+        interpolated = report["stats"]["pixels_interpolated"]
+        changed = (on["inscatter"] != off["inscatter"]).any(-1)
+        ref = exact["inscatter"].astype(np.float64)
+        got, est = on["inscatter"].astype(np.float64), on["error"].astype(np.float64)
+        err = np.abs(got - ref)
+        outside = (err > est + 2e-7 * np.abs(ref)).any(-1) & changed
+        beyond = (err > (tol + 2e-7) * np.abs(ref)).any(-1) & changed
+        light_beyond = 0
+        total = np.zeros_like(got)
+        for k in per_light:
+            ref_k = exact[k].astype(np.float64)
+            got_k = on[k].astype(np.float64)
+            total += got_k
+            light_changed = (on[k] != off[k]).any(-1)
+            light_beyond += int(((np.abs(got_k - ref_k) > (tol + 2e-7) * np.abs(ref_k)).any(-1) & light_changed).sum())
+        summed = np.abs(total - got) <= 1e-6 * np.abs(got) + 1e-30
+        print(
+            f"{name} ×{scale}{' + sphere' if sphere else ''}, tolerance {tol}: {interpolated} interpolated, "
+            f"{changed.sum()} changed, {outside.sum()} outside the estimate, {beyond.sum()} beyond the tolerance, "
+            f"{light_beyond} per-light pixels beyond it"
+        )
+        assert interpolated > 0 and changed.sum() > 0
+        assert outside.sum() == 0 and beyond.sum() == 0 and light_beyond == 0
+        assert summed.all()
+        assert np.isfinite(got).all() and np.isfinite(est).all()
 
 
 @pytest.mark.parametrize("case", ["half_degree_beam", "camera_beside_the_apex", "window_shaft", "height_fog"])

@@ -1696,8 +1696,7 @@ fn render_channels<const C: usize, const K: usize>(
     // the unlit grid (which needs the same and more).
     let want_topology = smooth_scene.is_ok()
         && scene.output.interpolate_smooth_pixels
-        && !need_ray
-        && !want_per_light
+        && !want_sun_t
         && !want_surface_t
         && scene.output.skip_unlit_tiles
         && matches!(scene.camera, crate::scene::Camera::Perspective(_))
@@ -1925,9 +1924,11 @@ fn render_channels<const C: usize, const K: usize>(
         })
         .unzip();
     let light_images: Vec<(f64, f64)> = polar_images.iter().map(|p| p.at).collect();
-    // Pixels may be interpolated ([`smooth`]) only with unlit tiles on
-    // (in-scatter layers only, perspective, stage lights only).
-    let smooth_on = want_topology && unlit_grid.is_some();
+    // Pixels may be interpolated ([`smooth`]) with unlit tiles on, or when
+    // a layer needs every ray anyway (transmittance, depth: then unlit tiles
+    // are off, and the deferred pixels outside every beam cost a surface hit
+    // and cone tests).
+    let smooth_on = want_topology && (need_ray || unlit_grid.is_some());
     // The filter across beams from their profiles ([`profile`]): when all
     // in-scatter comes from spot lamps in media without boundaries (the
     // interpolation's conditions) and a perspective camera's pixels are filtered.
@@ -1979,23 +1980,49 @@ fn render_channels<const C: usize, const K: usize>(
     // A pixel's surface (triangle + 1, 0: none) and topology code
     // ([`smooth::PRESENT`] set; 0 below it: the ray crosses no light's
     // volume, in-scatter 0), from one surface hit and the cone tests.
-    let code_of = |x: f64, y: f64, buf: &mut Vec<(f64, f64)>| -> (u32, u64) {
-        let Ok((_, casters)) = &smooth_scene else { return (0, 0) };
+    // With it, what the ray-dependent layers need: the view ray and the
+    // distance to its surface hit (`None`: no hit).
+    let code_of = |x: f64, y: f64, buf: &mut Vec<(f64, f64)>| -> (u32, u64, ViewRay, Option<f64>) {
         let dir = cam.direction(x, y);
         let start = cam.start_distance(dir);
-        let (end, surface) = match bvh.as_ref().and_then(|b| b.closest_hit(cam.position, dir, start, cam.clip_end)) {
-            Some(hit) => (hit.t, hit.triangle + 1),
-            None => (cam.clip_end, 0),
+        let (end, surface, hit) = match bvh.as_ref().and_then(|b| b.closest_hit(cam.position, dir, start, cam.clip_end)) {
+            Some(hit) => (hit.t, hit.triangle + 1, Some(hit.t)),
+            None => (cam.clip_end, 0, None),
         };
         let ray = ViewRay {
             origin: cam.position + dir * start,
             dir,
             s_max: (end - start).max(0.0),
         };
-        (
-            surface,
-            smooth::PRESENT | stage_lights.topology(&ray, buf, &|k| casters[k].may_shadow(cam.position, dir, end)),
-        )
+        let Ok((_, casters)) = &smooth_scene else { return (0, 0, ray, hit) };
+        let code = smooth::PRESENT | stage_lights.topology(&ray, buf, &|k| casters[k].may_shadow(cam.position, dir, end));
+        (surface, code, ray, hit)
+    };
+    // The view transmittance of a ray, as [`shade_pixel`] computes it (one
+    // medium: its closed form; several: `exp(−Σ τ)`), in RGB.
+    let view_transmittance = |ray: &ViewRay| -> [f64; 3] {
+        let mut crossed = media.iter().filter(|m| m.segment(ray).is_some());
+        let t: [f64; C] = match (crossed.next(), crossed.next()) {
+            (None, _) => [1.0; C],
+            (Some(m), None) => m.closed_form(ray, &lights).transmittance,
+            _ => {
+                let mut tau = [0.0; C];
+                for m in &media {
+                    let d = m.optical_depth(ray, ray.s_max);
+                    for c in 0..C {
+                        tau[c] += d[c];
+                    }
+                }
+                tau.map(|v| (-v).exp())
+            }
+        };
+        if spectral {
+            let mut buf = [0.0; SPECTRAL_SAMPLES];
+            buf.copy_from_slice(&t[..SPECTRAL_SAMPLES]);
+            spectrum::spectral_transmittance_to_rgb(&buf)
+        } else {
+            [t[0], t[1], t[2]]
+        }
     };
     // The same for a traced sample, from its own surface hit and cone tests.
     let traced_code = |x: f64, y: f64, s: &Sample<K>| -> u64 {
@@ -2141,18 +2168,54 @@ fn render_channels<const C: usize, const K: usize>(
     // pixels), then along y on the rows between (reading the lattice rows,
     // now complete; written back after).
     if smooth_on {
-        // One deferred pixel, given its six samples: (in-scatter, error,
-        // surface, code), and what it adds to the row's statistics.
+        // What a deferred pixel writes besides its in-scatter, error, surface
+        // and code: the ray-dependent layers (exact, from its own ray) and
+        // the per-light in-scatter.
+        // `lights` is a scratch of the fill; the record written back holds
+        // where the pixel's per-light values start in a side list (`Lights`).
+        #[derive(Clone, Copy)]
+        struct Extra<const K: usize> {
+            t: [f32; 3],
+            depth: f32,
+            lights: [[f32; 3]; K],
+        }
+        #[derive(Clone, Copy)]
+        enum Lights {
+            None,
+            Listed(u32),
+        }
+        #[derive(Clone, Copy)]
+        struct Record {
+            i: usize,
+            t: [f32; 3],
+            depth: f32,
+            lights: Lights,
+        }
+        let exact_layers = |ray: &ViewRay, hit: Option<f64>, x: &mut Extra<K>| {
+            if need_t {
+                x.t = view_transmittance(ray).map(|v| v.clamp(0.0, 1.0) as f32);
+            }
+            if want_depth {
+                x.depth = hit.map_or(DEPTH_NO_HIT, |t| t as f32);
+            }
+        };
+        // One deferred pixel, given its six samples (in-scatter, error,
+        // surface, code) and their pixel indices (for the per-light images),
+        // and what it adds to the row's statistics.
+        #[allow(clippy::too_many_arguments)]
         let fill = |col: usize,
                     row: usize,
                     stencil: &[smooth::StencilSample; 6],
+                    at: [usize; 6],
+                    light_images: &[Vec<[f32; 3]>],
                     st: &mut RowStats,
                     s: &mut Sample<K>,
-                    buf: &mut Vec<(f64, f64)>| {
+                    buf: &mut Vec<(f64, f64)>,
+                    extra: &mut Extra<K>| {
             if cancelled() {
                 // Skipped: code 0 is "no sample" to the pixels that read it.
                 *s = Sample::default();
-                return ([0.0f32; 3], [0.0f32; 3], s.surface, 0);
+                return ([0.0f32; 3], [0.0f32; 3], 0.0, s.surface, 0, Lights::None);
             }
             let (x, y) = (col as f64 + 0.5, row as f64 + 0.5);
             // The pixel's own code costs a surface hit and cone tests: only
@@ -2160,39 +2223,124 @@ fn render_channels<const C: usize, const K: usize>(
             let common = stencil[0]
                 .map(|v| v.2)
                 .filter(|g| stencil.iter().all(|v| v.is_some_and(|v| v.2 == *g)));
-            let own = common.and_then(|g| {
-                let (surface, code) = code_of(x, y, buf);
-                // Top bit: a light the ray crosses may be shadowed.
-                ((group_of(surface), code) == g && code >> 63 == 0).then_some((surface, code))
+            // Each light's in-scatter, interpolated from its layer's samples
+            // with the samples' own errors of the whole in-scatter (which
+            // bound each light's share); every light must meet the tolerance
+            // too, else the pixel is traced. The largest estimate, which the
+            // pixel's own error then carries for the next level's stencils
+            // (so that it bounds every light's error, not only the sum's).
+            let per_light = |extra: &mut Extra<K>| -> Option<f32> {
+                let errs: [[f64; 3]; 6] = std::array::from_fn(|i| stencil[i].map_or([0.0; 3], |v| v.1.map(f64::from)));
+                let mut worst = 0f32;
+                for (k, img) in light_images.iter().enumerate() {
+                    let vals: [[f64; 3]; 6] = at.map(|i| img[i].map(f64::from));
+                    if vals.iter().all(|v| *v == [0.0; 3]) {
+                        // A light the samples do not cross (same code: nor does the pixel).
+                        extra.lights[k] = [0.0; 3];
+                        continue;
+                    }
+                    let (v, e) = smooth::interpolate_values(&vals, &errs, tolerance)?;
+                    extra.lights[k] = v.map(|x| x as f32);
+                    worst = worst.max(e.iter().fold(0f32, |m, x| m.max(*x as f32)));
+                }
+                Some(worst)
+            };
+            // Samples that share a code with the shadow bit (63) set: the
+            // pixel is traced, whatever its own code. Otherwise the values
+            // are tried first (they need only the samples), and the pixel's
+            // own code, a surface hit and cone tests, only when they pass.
+            let own = common.filter(|g| g.1 >> 63 == 0).and_then(|g| {
+                let values = if g.1 == smooth::PRESENT {
+                    None
+                } else {
+                    Some((smooth::interpolate(stencil, g, tolerance)?, per_light(extra)?))
+                };
+                let (surface, code, ray, hit) = code_of(x, y, buf);
+                ((group_of(surface), code) == g).then_some((surface, code, ray, hit, values))
             });
             match own {
-                Some((surface, code)) if code == smooth::PRESENT => {
+                Some((surface, code, ray, hit, None)) => {
                     // The ray crosses no light's volume (nor do the samples):
                     // in-scatter exactly 0.
                     st.outside += 1;
-                    ([0.0f32; 3], [0.0f32; 3], surface, code)
+                    exact_layers(&ray, hit, extra);
+                    ([0.0f32; 3], [0.0f32; 3], 0.0, surface, code, Lights::None)
                 }
-                Some((surface, code)) if let Some((l, e)) = smooth::interpolate(stencil, (group_of(surface), code), tolerance) => {
+                Some((surface, code, ray, hit, Some(((l, e), light_error)))) => {
                     st.add_interpolated(&l, &e);
-                    (l.map(|v| v as f32), e.map(|v| v as f32), surface, code)
+                    exact_layers(&ray, hit, extra);
+                    let e = e.map(|v| v as f32);
+                    let lights = if light_images.is_empty() { Lights::None } else { Lights::Listed(0) };
+                    (l.map(|v| v as f32), e, max_of(&e).max(light_error), surface, code, lights)
                 }
                 _ => {
                     sample_into(x, y, s);
                     st.add(s);
                     let code = traced_code(x, y, s);
-                    // (A render cancelled since `code_of` traces nothing: its code differs.)
-                    debug_assert!(own.is_none_or(|o| o.1 == code) || cancelled(), "{own:?} vs {code}");
-                    (s.l.map(|v| v as f32), s.e.map(|v| v as f32), s.surface, code)
+                    extra.t = s.t.map(|v| v.clamp(0.0, 1.0) as f32);
+                    extra.depth = if s.hit { s.depth as f32 } else { DEPTH_NO_HIT };
+                    for k in 0..light_images.len() {
+                        extra.lights[k] = s.lights[k].map(|v| v as f32);
+                    }
+                    let lights = if light_images.is_empty() { Lights::None } else { Lights::Listed(0) };
+                    let e = s.e.map(|v| v as f32);
+                    (s.l.map(|v| v as f32), e, max_of(&e), s.surface, code, lights)
                 }
             }
         };
         let read = |l: &[[f32; 3]], e: &[f32], id: &[u32], code: &[u64], i: usize| -> smooth::StencilSample {
             (code[i] & smooth::PRESENT != 0).then(|| (l[i], [e[i]; 3], (group_of(id[i]), code[i])))
         };
+        // The ray-dependent layers and per-light in-scatter of the filled
+        // pixels, written after each pass (pixel index, extra).
+        let write_extra =
+            |records: &[Record], traced: &[[f32; 3]], t_img: &mut [[f32; 3]], d_img: &mut [f32], lights_img: &mut [Vec<[f32; 3]>]| {
+                for r in records {
+                    if need_t {
+                        t_img[r.i] = r.t;
+                    }
+                    if want_depth {
+                        d_img[r.i] = r.depth;
+                    }
+                    match r.lights {
+                        Lights::None => {}
+                        Lights::Listed(at) => {
+                            for (k, img) in lights_img.iter_mut().enumerate() {
+                                img[r.i] = traced[at as usize + k];
+                            }
+                        }
+                    }
+                }
+            };
+        // The record of a filled pixel; a traced pixel's per-light values go to `traced`.
+        let record = |i: usize, x: &Extra<K>, lights: Lights, traced: &mut Vec<[f32; 3]>| -> Record {
+            let lights = match lights {
+                Lights::Listed(_) => {
+                    let at = traced.len() as u32;
+                    traced.extend_from_slice(&x.lights[..n_stage]);
+                    Lights::Listed(at)
+                }
+                Lights::None => Lights::None,
+            };
+            Record {
+                i,
+                t: x.t,
+                depth: x.depth,
+                lights,
+            }
+        };
+        let keeps_extra = need_t || want_depth || want_per_light;
+        let extra0 = Extra::<K> {
+            t: [1.0; 3],
+            depth: DEPTH_NO_HIT,
+            lights: [[0.0; 3]; K],
+        };
         // Level by level, coarse to fine: the half-spacing s = 2 fills the
         // lattice of even pixels from the multiples of 4, s = 1 the rest.
         for s in [2usize, 1] {
-            let along_x: Vec<RowStats> = inscatter
+            let images = &light_inscatter;
+            type RowFilled = (RowStats, Vec<Record>, Vec<[f32; 3]>);
+            let along_x: Vec<RowFilled> = inscatter
                 .par_chunks_mut(w)
                 .zip(surface.par_chunks_mut(w))
                 .zip(error.par_chunks_mut(err_chunk))
@@ -2202,6 +2350,8 @@ fn render_channels<const C: usize, const K: usize>(
                 .filter(|(row, _)| row.is_multiple_of(2 * s))
                 .map(|(row, ((((l_row, id_row), e_row), oe_row), code_row))| {
                     let (mut st, mut smp, mut buf) = (RowStats::default(), Sample::<K>::default(), Vec::new());
+                    let (mut records, mut traced) = (Vec::new(), Vec::new());
+                    let mut extra = extra0;
                     let (lo, hi) = row_spans[row];
                     // The first column ≡ s (mod 2s) from lo.
                     let first = lo + (3 * s - lo % (2 * s)) % (2 * s);
@@ -2209,24 +2359,42 @@ fn render_channels<const C: usize, const K: usize>(
                         if level_of(col, row) != s {
                             continue;
                         }
-                        let stencil: [smooth::StencilSample; 6] =
-                            std::array::from_fn(|k| read(l_row, oe_row, id_row, code_row, col + (2 * k + 1) * s - (ST + 1) * s));
-                        let (l, e, id, code) = fill(col, row, &stencil, &mut st, &mut smp, &mut buf);
-                        (l_row[col], oe_row[col], id_row[col], code_row[col]) = (l, max_of(&e), id, code);
+                        let at: [usize; 6] = std::array::from_fn(|k| col + (2 * k + 1) * s - (ST + 1) * s);
+                        let stencil: [smooth::StencilSample; 6] = at.map(|c| read(l_row, oe_row, id_row, code_row, c));
+                        let (l, e, oe, id, code, lights) = fill(
+                            col,
+                            row,
+                            &stencil,
+                            at.map(|c| row * w + c),
+                            images,
+                            &mut st,
+                            &mut smp,
+                            &mut buf,
+                            &mut extra,
+                        );
+                        (l_row[col], oe_row[col], id_row[col], code_row[col]) = (l, oe, id, code);
                         if want_error {
                             e_row[col] = e;
                         }
+                        if keeps_extra {
+                            records.push(record(row * w + col, &extra, lights, &mut traced));
+                        }
                     }
-                    st
+                    (st, records, traced)
                 })
                 .collect();
-            type Filled = Vec<(usize, [f32; 3], [f32; 3], u32, u64)>;
+            for (_, records, traced) in &along_x {
+                write_extra(records, traced, &mut transmittance, &mut depth, &mut light_inscatter);
+            }
+            let images = &light_inscatter;
+            type Filled = (Vec<(usize, [f32; 3], [f32; 3], f32, u32, u64)>, Vec<Record>, Vec<[f32; 3]>);
             let along_y: Vec<(Filled, RowStats)> = (0..h.div_ceil(2 * s))
                 .into_par_iter()
                 .map(|k| {
                     let row = 2 * s * k + s;
                     let (mut st, mut smp, mut buf) = (RowStats::default(), Sample::<K>::default(), Vec::new());
-                    let mut out: Filled = Vec::new();
+                    let mut extra = extra0;
+                    let mut out: Filled = (Vec::new(), Vec::new(), Vec::new());
                     if row >= h {
                         return (out, st);
                     }
@@ -2235,17 +2403,13 @@ fn render_channels<const C: usize, const K: usize>(
                         if level_of(col, row) != s {
                             continue;
                         }
-                        let stencil: [smooth::StencilSample; 6] = std::array::from_fn(|j| {
-                            read(
-                                &inscatter,
-                                &own_error,
-                                &surface,
-                                &codes,
-                                (row + (2 * j + 1) * s - (ST + 1) * s) * w + col,
-                            )
-                        });
-                        let (l, e, id, code) = fill(col, row, &stencil, &mut st, &mut smp, &mut buf);
-                        out.push((col, l, e, id, code));
+                        let at: [usize; 6] = std::array::from_fn(|j| (row + (2 * j + 1) * s - (ST + 1) * s) * w + col);
+                        let stencil: [smooth::StencilSample; 6] = at.map(|i| read(&inscatter, &own_error, &surface, &codes, i));
+                        let (l, e, oe, id, code, lights) = fill(col, row, &stencil, at, images, &mut st, &mut smp, &mut buf, &mut extra);
+                        out.0.push((col, l, e, oe, id, code));
+                        if keeps_extra {
+                            out.1.push(record(row * w + col, &extra, lights, &mut out.2));
+                        }
                     }
                     (out, st)
                 })
@@ -2258,16 +2422,19 @@ fn render_channels<const C: usize, const K: usize>(
                 .zip(own_error.par_chunks_mut(2 * s * w))
                 .zip(codes.par_chunks_mut(2 * s * w))
                 .zip(&along_y)
-                .for_each(|(((((l_rows, id_rows), e_rows), oe_rows), code_rows), (out, _))| {
-                    for &(col, l, e, id, code) in out {
+                .for_each(|(((((l_rows, id_rows), e_rows), oe_rows), code_rows), ((out, ..), _))| {
+                    for &(col, l, e, oe, id, code) in out {
                         let i = s * w + col;
-                        (l_rows[i], id_rows[i], oe_rows[i], code_rows[i]) = (l, id, max_of(&e), code);
+                        (l_rows[i], id_rows[i], oe_rows[i], code_rows[i]) = (l, id, oe, code);
                         if want_error {
                             e_rows[s * err_chunk + col] = e;
                         }
                     }
                 });
-            for st in along_x.iter().chain(along_y.iter().map(|(_, st)| st)) {
+            for ((_, records, traced), _) in &along_y {
+                write_extra(records, traced, &mut transmittance, &mut depth, &mut light_inscatter);
+            }
+            for st in along_x.iter().map(|(st, ..)| st).chain(along_y.iter().map(|(_, st)| st)) {
                 stats.merge(st);
             }
         }
@@ -3013,7 +3180,7 @@ fn render_channels<const C: usize, const K: usize>(
         Ok(_) if smooth_on => report.plan.left_out(
             format!("scattering integral on {} view rays", stats.interpolated),
             format!(
-                "interpolated: the 4-point cubic between samples 4 px apart (pixels with even x and y), then 2 px apart (the rest), that end on the same plane and cross the same light cones (blend cones included) and window prisms the same way as the pixel's own ray (its topology, one surface hit and cone tests), unshadowed, away from the lights' images; charged {} × (3/256)(|Δ⁴_L| + |Δ⁴_R|) plus the samples' own errors, within the tolerance (rays that cross no light: exactly 0)",
+                "interpolated: the 4-point cubic between samples 4 px apart (pixels with even x and y), then 2 px apart (the rest), that end on the same plane and cross the same light cones (blend cones included) and window prisms the same way as the pixel's own ray (its topology, one surface hit and cone tests), unshadowed (outside their casters' shadow pyramids and balls), away from the lights' images; charged {} × (3/256)(|Δ⁴_L| + |Δ⁴_R|) plus the samples' own errors, within the tolerance, and each light's layer within it too (rays that cross no light: exactly 0); transmittance and depth from the pixel's own ray",
                 smooth::SAFETY
             ),
         ),
@@ -3022,7 +3189,7 @@ fn render_channels<const C: usize, const K: usize>(
         }
         Ok(_) if scene.output.interpolate_smooth_pixels => report.plan.computed(
             "every lit pixel's view ray",
-            "no pixel interpolated: only for in-scatter layers (and the error), not per light, with unlit tiles on",
+            "no pixel interpolated: not with the sun_transmittance or surface_transmittance_per_light layers, with unlit tiles off, an equirectangular camera, or sun or ambient light",
         ),
         _ => {}
     }

@@ -21,7 +21,10 @@
 //!    the rays end on the eye's side of it, or have no end and do not head
 //!    towards it (a caster shadows only the far side of its plane), or
 //!    casters on a few planes (a box on a floor) and the rays enter none of
-//!    the planes' shadow pyramids ([`ShadowPyramid`]) — part of the code too;
+//!    the planes' shadow pyramids ([`ShadowPyramid`]), or casters on many
+//!    planes (a faceted sphere) and the rays enter neither the largest
+//!    planes' pyramids (its floor) nor the shadow region of a ball around
+//!    the rest ([`ShadowBall`]) — part of the code too;
 //!
 //! in media without internal boundaries (homogeneous without bounds, height
 //! fog) and lights whose distribution is smooth between its kinks (Blender
@@ -78,6 +81,18 @@
 //! tolerance by its own estimate, as a traced pixel does; otherwise it is
 //! traced. A ray that crosses no light's volume has in-scatter exactly 0,
 //! and so do its six samples: it is "interpolated" exactly.
+//!
+//! **Other layers.** Transmittance and depth are never interpolated: an
+//! interpolated pixel takes them from its own ray (the surface hit its code
+//! needs anyway, and the media's closed-form optical depth), bit for bit
+//! what tracing it gives. Each light's in-scatter layer is interpolated from
+//! that layer's six samples with the same rule, the samples' own errors
+//! being those of the whole in-scatter (a traced sample's error is the sum
+//! of its lights' shares); the pixel is interpolated only when every light
+//! meets the tolerance too, and its stored own error is then the largest of
+//! all these estimates, so that a later level's stencil is charged enough
+//! for every layer. (Samples with no in-scatter from a light: the light is
+//! not crossed, nor by the pixel, whose code is the same.)
 
 use crate::geometry::bvh::Triangle;
 use crate::scene::Mesh;
@@ -229,6 +244,10 @@ pub enum Casters {
     /// On a few planes (at most [`MAX_PYRAMIDS`]): each plane's casters
     /// shadow only what lies inside its [`ShadowPyramid`].
     Pyramids(Vec<ShadowPyramid>),
+    /// On more planes (a curved mesh: a plane per facet), or on a plane
+    /// through the light: the largest planes keep their pyramids (a floor),
+    /// the other triangles shadow only what lies inside their [`ShadowBall`].
+    PyramidsAndBall(Vec<ShadowPyramid>, ShadowBall),
     /// Anywhere else: the light may be shadowed between two samples.
     Any,
 }
@@ -334,13 +353,93 @@ impl ShadowPyramid {
     }
 }
 
+/// Where triangles inside a ball (centre `c`, radius `r`) can shadow a
+/// point light at distance `d > r` from `c`: a point `x` whose segment to the
+/// light crosses one crosses the ball, so `x` lies in the cone from the light
+/// over the ball (half-angle `asin(r/d)`) and at least `d − r` from the
+/// light. That region holds the triangles' shadow; a view ray that never
+/// reaches it is not shadowed by them. Coarser than the pyramids of their
+/// planes, but one test per ray for any number of planes: a sphere of
+/// 9 940 facets lit by a spot shadows only the rays that pass behind it.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ShadowBall {
+    /// The light, m.
+    apex: DVec3,
+    /// Unit vector from the light to the ball's centre.
+    axis: DVec3,
+    /// Cosine of the cone's half-angle, `√(d² − r²)/d`.
+    cos_half: f64,
+    /// `d − r`, m: nearer to the light than this, nothing is shadowed.
+    near: f64,
+}
+
+impl ShadowBall {
+    /// The region of the ball bounding `[lo, hi]` (a box, m) for the light
+    /// at `apex`: `None` when the light is inside the ball. The ball's radius
+    /// is the box's half-diagonal, grown by `margin` (m) and a relative 1e-9,
+    /// so that the test is conservative under rounding.
+    fn new(lo: DVec3, hi: DVec3, apex: DVec3, margin: f64) -> Option<ShadowBall> {
+        let centre = 0.5 * (lo + hi);
+        let to_centre = centre - apex;
+        let d = to_centre.length();
+        let r = 0.5 * (hi - lo).length() * (1.0 + 1e-9) + margin + 1e-9 * d;
+        if d.is_nan() || d <= r || !d.is_finite() {
+            return None;
+        }
+        Some(ShadowBall {
+            apex,
+            axis: to_centre / d,
+            cos_half: ((d - r) * (d + r)).sqrt() / d,
+            near: d - r,
+        })
+    }
+
+    /// `sin` of the cone's half-angle: how much of the light's sky the ball
+    /// takes (smaller is better).
+    fn spread(&self) -> f64 {
+        (1.0 - self.cos_half * self.cos_half).max(0.0).sqrt()
+    }
+
+    /// Whether the segment `eye + t·dir`, `0 ≤ t ≤ t_end` (unit `dir`,
+    /// `t_end` may be infinite), enters the region.
+    fn reached_by(&self, eye: DVec3, dir: DVec3, t_end: f64) -> bool {
+        let mut inside = Vec::with_capacity(2);
+        crate::light::ray_cone_intervals(eye, dir, 0.0, t_end, self.apex, self.axis, self.cos_half, &mut inside);
+        // The distance to the light is convex along the ray: on an interval
+        // it is largest at one of its ends.
+        let far = |t: f64| {
+            if t.is_finite() {
+                (eye + dir * t - self.apex).length()
+            } else {
+                f64::INFINITY
+            }
+        };
+        inside.iter().any(|&(a, b)| far(a).max(far(b)) >= self.near)
+    }
+}
+
+/// A plane group's triangles touching a light: group + 1 (from
+/// [`Planes::group_of`]), their vertices, their total area (m²).
+type PlaneGroup = (u32, Vec<DVec3>, f64);
+
+/// Whether any of `pyramids` is reached by the segment (see [`Casters::may_shadow`]).
+fn pyramids_reached(pyramids: &[ShadowPyramid], eye: DVec3, dir: DVec3, t_end: f64) -> bool {
+    // As for a plane: a hit on a caster's plane is on its near side.
+    let reach = if t_end.is_finite() { t_end } else { 0.0 };
+    pyramids.iter().any(|p| {
+        let tol = 1e-9 * (1.0 + p.beyond.1.abs() + eye.abs().max_element() + reach);
+        p.reached_by(eye, dir, t_end, tol)
+    })
+}
+
 impl Casters {
     /// Which casters the triangles passing `may_touch(centre, radius)` are,
     /// for the light at `apex`.
     pub fn of(tris: &[Triangle], planes: &Planes, eye: DVec3, apex: DVec3, may_touch: impl Fn(DVec3, f64) -> bool) -> Casters {
         let margin = 1e-9 * (1.0 + eye.abs().max_element().max(apex.abs().max_element()));
-        // The touching triangles' vertices per plane, in order of first touch.
-        let mut groups: Vec<(u32, Vec<DVec3>)> = Vec::new();
+        // The touching triangles' vertices and area per plane, in order of first touch.
+        let mut groups: Vec<PlaneGroup> = Vec::new();
+        let mut index_of: HashMap<u32, usize> = HashMap::default();
         for (i, t) in tris.iter().enumerate() {
             let g = planes.group_of(i as u32);
             if g == 0 {
@@ -351,13 +450,20 @@ impl Casters {
             if !may_touch(centre, radius) {
                 continue;
             }
-            match groups.iter().position(|(h, _)| *h == g) {
-                Some(j) => groups[j].1.extend_from_slice(&t.v),
-                None if groups.len() < MAX_PYRAMIDS => groups.push((g, t.v.to_vec())),
-                None => return Casters::Any,
+            let area = 0.5 * (t.v[1] - t.v[0]).cross(t.v[2] - t.v[0]).length();
+            match index_of.entry(g) {
+                std::collections::hash_map::Entry::Occupied(e) => {
+                    let group = &mut groups[*e.get()];
+                    group.1.extend_from_slice(&t.v);
+                    group.2 += area;
+                }
+                std::collections::hash_map::Entry::Vacant(e) => {
+                    e.insert(groups.len());
+                    groups.push((g, t.v.to_vec(), area));
+                }
             }
         }
-        let Some(&(first, _)) = groups.first() else {
+        let Some(&(first, _, _)) = groups.first() else {
             return Casters::None;
         };
         if groups.len() == 1 {
@@ -370,13 +476,78 @@ impl Casters {
                 return Casters::Plane { normal, offset };
             }
         }
-        let pyramids: Option<Vec<ShadowPyramid>> = groups
-            .iter()
-            .map(|(g, points)| ShadowPyramid::new(points, planes.planes[*g as usize - 1], apex, margin))
-            .collect();
-        match pyramids {
-            Some(p) if p.iter().map(|p| p.sides.len()).sum::<usize>() <= MAX_PYRAMID_SIDES => Casters::Pyramids(p),
-            _ => Casters::Any,
+        let pyramid = |(g, points, _): &PlaneGroup| ShadowPyramid::new(points, planes.planes[*g as usize - 1], apex, margin);
+        if groups.len() <= MAX_PYRAMIDS {
+            let pyramids: Option<Vec<ShadowPyramid>> = groups.iter().map(pyramid).collect();
+            if let Some(p) = pyramids
+                && p.iter().map(|p| p.sides.len()).sum::<usize>() <= MAX_PYRAMID_SIDES
+            {
+                return Casters::Pyramids(p);
+            }
+        }
+        Self::pyramids_and_ball(groups, &pyramid, apex, margin)
+    }
+
+    /// Too many planes for pyramids alone (or a plane through the light):
+    /// the `k` largest planes by area keep their pyramids and the rest share
+    /// one [`ShadowBall`], `k ≤ MAX_PYRAMIDS` chosen to make the ball's cone
+    /// narrowest (the smallest `k` within 5 % of that). A floor under a
+    /// faceted sphere: `k = 1`, the ball the sphere's. [`Casters::Any`] when
+    /// the light is inside every such ball.
+    fn pyramids_and_ball(
+        mut groups: Vec<PlaneGroup>,
+        pyramid: &dyn Fn(&PlaneGroup) -> Option<ShadowPyramid>,
+        apex: DVec3,
+        margin: f64,
+    ) -> Casters {
+        groups.sort_by(|a, b| b.2.total_cmp(&a.2));
+        // The bounding box of groups[k..] for every k, from the end.
+        let mut suffix = vec![(DVec3::INFINITY, DVec3::NEG_INFINITY); groups.len() + 1];
+        for k in (0..groups.len()).rev() {
+            let (mut lo, mut hi) = suffix[k + 1];
+            for &p in &groups[k].1 {
+                lo = lo.min(p);
+                hi = hi.max(p);
+            }
+            suffix[k] = (lo, hi);
+        }
+        let mut best: Option<(usize, ShadowBall)> = None;
+        let mut pyramids: Vec<ShadowPyramid> = Vec::new();
+        let mut sides = 0usize;
+        for k in 0..groups.len().min(MAX_PYRAMIDS + 1) {
+            if k > 0 {
+                // The prefix's pyramids must all exist, within the side budget.
+                let Some(p) = pyramid(&groups[k - 1]) else { break };
+                sides += p.sides.len();
+                if sides > MAX_PYRAMID_SIDES {
+                    break;
+                }
+                pyramids.push(p);
+            }
+            let (lo, hi) = suffix[k];
+            if let Some(ball) = ShadowBall::new(lo, hi, apex, margin)
+                && best.as_ref().is_none_or(|(_, b)| ball.spread() < 0.95 * b.spread())
+            {
+                best = Some((k, ball));
+            }
+        }
+        match best {
+            Some((k, ball)) => {
+                pyramids.truncate(k);
+                // The chosen ball tightened: about the box's centre, the
+                // farthest vertex (a sphere's box has √3 times its radius).
+                let (lo, hi) = suffix[k];
+                let centre = 0.5 * (lo + hi);
+                let reach = groups[k..]
+                    .iter()
+                    .flat_map(|g| g.1.iter())
+                    .map(|p| (*p - centre).length())
+                    .fold(0.0, f64::max);
+                let half = DVec3::splat(reach / 3f64.sqrt());
+                let ball = ShadowBall::new(centre - half, centre + half, apex, margin).unwrap_or(ball);
+                Casters::PyramidsAndBall(pyramids, ball)
+            }
+            None => Casters::Any,
         }
     }
 
@@ -397,16 +568,9 @@ impl Casters {
             // is infinite, its casters are not, so beyond them the ray may
             // reach the shadowed side.
             &Casters::Plane { normal, .. } => normal.dot(dir) < 0.0 || normal.dot(dir).is_nan(),
-            Casters::Pyramids(pyramids) => {
-                if !dir.is_finite() || t_end.is_nan() {
-                    return true;
-                }
-                // As for a plane: a hit on a caster's plane is on its near side.
-                let reach = if t_end.is_finite() { t_end } else { 0.0 };
-                pyramids.iter().any(|p| {
-                    let tol = 1e-9 * (1.0 + p.beyond.1.abs() + eye.abs().max_element() + reach);
-                    p.reached_by(eye, dir, t_end, tol)
-                })
+            Casters::Pyramids(pyramids) => !dir.is_finite() || t_end.is_nan() || pyramids_reached(pyramids, eye, dir, t_end),
+            Casters::PyramidsAndBall(pyramids, ball) => {
+                !dir.is_finite() || t_end.is_nan() || ball.reached_by(eye, dir, t_end) || pyramids_reached(pyramids, eye, dir, t_end)
             }
             Casters::Any => true,
         }
@@ -433,6 +597,14 @@ pub fn interpolate(stencil: &[StencilSample; 6], signature: (u32, u64), toleranc
         vals[i] = l.map(f64::from);
         errs[i] = e.map(f64::from);
     }
+    interpolate_values(&vals, &errs, tolerance)
+}
+
+/// [`interpolate`] on six samples already known to share the pixel's
+/// signature: values and their own errors (per channel). Used for each
+/// light's in-scatter as well, with the samples' errors of the whole
+/// in-scatter (each light's share of a traced sample's error is part of it).
+pub fn interpolate_values(vals: &[[f64; 3]; 6], errs: &[[f64; 3]; 6], tolerance: f64) -> Option<([f64; 3], [f64; 3])> {
     let mut value = [0.0; 3];
     let mut error = [0.0; 3];
     for c in 0..3 {
@@ -675,6 +847,101 @@ mod tests {
         }
         assert!(counts[0] > 300 && counts[1] > 300, "{counts:?}");
         assert!(counts[1] > counts[2], "{counts:?}");
+    }
+
+    #[test]
+    fn a_shadow_ball_holds_every_ray_a_faceted_sphere_shadows() {
+        use crate::geometry::bvh::Bvh;
+        let mut state = 0x2545_f491_4f6c_dd1du64;
+        let mut rand = || {
+            state = state.wrapping_add(0x9e37_79b9_7f4a_7c15);
+            let mut z = state;
+            z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+            z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+            ((z ^ (z >> 31)) >> 11) as f64 / (1u64 << 53) as f64
+        };
+        // A UV sphere (radius 0.8 at z = 2.5, 12 × 16 facets: 192 planes) on a floor.
+        let (rings, segments, r, c) = (12usize, 16usize, 0.8, [0.2, -0.1, 2.5]);
+        let mut positions = vec![[c[0], c[1], c[2] + r], [c[0], c[1], c[2] - r]];
+        for i in 1..rings {
+            let theta = std::f64::consts::PI * i as f64 / rings as f64;
+            for j in 0..segments {
+                let phi = std::f64::consts::TAU * j as f64 / segments as f64;
+                positions.push([
+                    c[0] + r * theta.sin() * phi.cos(),
+                    c[1] + r * theta.sin() * phi.sin(),
+                    c[2] + r * theta.cos(),
+                ]);
+            }
+        }
+        let ring = |i: usize, j: usize| (2 + (i - 1) * segments + j % segments) as u32;
+        let mut triangles = Vec::new();
+        for j in 0..segments {
+            triangles.push([0, ring(1, j), ring(1, j + 1)]);
+            triangles.push([1, ring(rings - 1, j + 1), ring(rings - 1, j)]);
+            for i in 1..rings - 1 {
+                triangles.push([ring(i, j), ring(i + 1, j), ring(i + 1, j + 1)]);
+                triangles.push([ring(i, j), ring(i + 1, j + 1), ring(i, j + 1)]);
+            }
+        }
+        let mesh = |name: &str, positions: Vec<[f64; 3]>, triangles: Vec<[u32; 3]>| Mesh {
+            name: name.into(),
+            positions,
+            triangles,
+            transform: Default::default(),
+            visible_to_camera: true,
+            casts_shadows: true,
+        };
+        let meshes = vec![
+            mesh(
+                "floor",
+                vec![[-30.0, -30.0, 0.0], [30.0, -30.0, 0.0], [30.0, 30.0, 0.0], [-30.0, 30.0, 0.0]],
+                vec![[0, 1, 2], [0, 2, 3]],
+            ),
+            mesh("sphere", positions, triangles),
+        ];
+        let (tris, _) = crate::geometry::world_triangles(&meshes);
+        let planes = Planes::new(&meshes, &tris);
+        let apex = DVec3::new(0.6, 0.4, 5.5);
+        let bvh = Bvh::build(tris.clone());
+        let mut counts = [0usize; 3]; // shadowed, unshadowed told apart, unshadowed flagged
+        for trial in 0..2000 {
+            let eye = if trial % 2 == 0 {
+                DVec3::new(0.0, -10.0, 2.5)
+            } else {
+                DVec3::new(8.0 * rand() - 4.0, 8.0 * rand() - 4.0, 0.2 + 5.0 * rand())
+            };
+            let casters = Casters::of(&tris, &planes, eye, apex, |_, _| true);
+            let Casters::PyramidsAndBall(ref pyramids, ref ball) = casters else {
+                panic!("{casters:?}")
+            };
+            // The floor keeps its pyramid; the ball is the sphere's (tightened to its radius).
+            assert_eq!(pyramids.len(), 1, "{casters:?}");
+            let d = (DVec3::from(c) - apex).length();
+            assert!((ball.spread() - r / d).abs() < 1e-6, "{} vs {}", ball.spread(), r / d);
+            if bvh.any_hit(eye, (apex - eye).normalize(), 0.0, (apex - eye).length()) {
+                assert!(casters.may_shadow(eye, DVec3::Z, 1e-3));
+                continue;
+            }
+            let target = DVec3::new(6.0 * rand() - 3.0, 6.0 * rand() - 3.0, 6.0 * rand() - 0.5);
+            let dir = (target - eye).normalize();
+            let t_end = bvh.closest_hit(eye, dir, 0.0, f64::INFINITY).map_or(f64::INFINITY, |h| h.t);
+            let reach = t_end.min(40.0);
+            let shadowed = (0..4000).any(|i| {
+                let p = eye + dir * reach * (i as f64 + 0.5) / 4000.0;
+                let to = apex - p;
+                bvh.any_hit(p, to.normalize(), 1e-9, to.length() * (1.0 - 1e-9))
+            });
+            let may = casters.may_shadow(eye, dir, t_end);
+            if shadowed {
+                assert!(may, "trial {trial}: eye {eye}, dir {dir}, end {t_end}: shadowed but not flagged");
+                counts[0] += 1;
+            } else {
+                counts[if may { 2 } else { 1 }] += 1;
+            }
+        }
+        // Not vacuous: rays in the shadow and rays told apart from it.
+        assert!(counts[0] > 100 && counts[1] > 300, "{counts:?}");
     }
 
     #[test]
