@@ -315,10 +315,11 @@ def _faceted_sphere(centre: tuple[float, float, float], radius: float, rings: in
     [("two_coloured_spots", 2, False), ("two_coloured_spots", 2, True), ("spot_box_occluder", 2, False)],
 )
 def test_interpolation_with_transmittance_depth_and_per_light_layers(name: str, scale: int, sphere: bool) -> None:
-    """With layers that need every ray (transmittance, depth) and per-light
-    in-scatter, smooth pixels are still interpolated: their transmittance and
-    depth come from their own ray (the same bits as with every pixel
-    traced), the in-scatter as before, and each light's layer from its own
+    """With layers that need every ray (transmittance, depth, each light's
+    surface transmittance: the add-on's default set) and per-light
+    in-scatter, smooth pixels are still interpolated: their transmittance,
+    depth and surface transmittances come from their own ray (the same bits
+    as with every pixel traced), the in-scatter as before, and each light's layer from its own
     samples, interpolated only where every light meets the tolerance too.
     Against every pixel traced to 1e-7: every changed pixel is within its
     estimate and the tolerance, every light's layer within the tolerance of
@@ -328,7 +329,7 @@ def test_interpolation_with_transmittance_depth_and_per_light_layers(name: str, 
     scene = _scaled(name, scale)
     if sphere:
         scene["meshes"].append(_faceted_sphere((0.0, 0.0, 2.5), 0.8, 12, 12))
-    layers = ["inscatter", "transmittance", "depth", "error", "inscatter_per_light"]
+    layers = ["inscatter", "transmittance", "depth", "error", "inscatter_per_light", "surface_transmittance_per_light"]
     none = {"type": "none"}
     exact, _ = _render_layers(
         scene, layers=layers, tolerance=1e-7, pixel_filter=none, interpolate_smooth_pixels=False
@@ -338,7 +339,9 @@ def test_interpolation_with_transmittance_depth_and_per_light_layers(name: str, 
     for tol in (0.01, 1e-3):
         on, report = _render_layers(scene, layers=layers, tolerance=tol, pixel_filter=none)
         off, _ = _render_layers(scene, layers=layers, tolerance=tol, pixel_filter=none, interpolate_smooth_pixels=False)
-        for k in ("transmittance", "depth"):
+        exact_layers = [k for k in on if not k.startswith("inscatter") and k != "error"]
+        assert {"transmittance", "depth"} < set(exact_layers) and len(exact_layers) == 2 + len(scene["lights"])
+        for k in exact_layers:
             assert np.array_equal(on[k], off[k]), k
         interpolated = report["stats"]["pixels_interpolated"]
         changed = (on["inscatter"] != off["inscatter"]).any(-1)

@@ -1697,7 +1697,6 @@ fn render_channels<const C: usize, const K: usize>(
     let want_topology = smooth_scene.is_ok()
         && scene.output.interpolate_smooth_pixels
         && !want_sun_t
-        && !want_surface_t
         && scene.output.skip_unlit_tiles
         && matches!(scene.camera, crate::scene::Camera::Perspective(_))
         && lights.suns.is_empty()
@@ -1998,9 +1997,19 @@ fn render_channels<const C: usize, const K: usize>(
         let code = smooth::PRESENT | stage_lights.topology(&ray, buf, &|k| casters[k].may_shadow(cam.position, dir, end));
         (surface, code, ray, hit)
     };
+    // A transmittance per channel in RGB, as [`Sample`]s hold it.
+    let transmittance_rgb = |t: &[f64; C]| -> [f64; 3] {
+        if spectral {
+            let mut buf = [0.0; SPECTRAL_SAMPLES];
+            buf.copy_from_slice(&t[..SPECTRAL_SAMPLES]);
+            spectrum::spectral_transmittance_to_rgb(&buf)
+        } else {
+            [t[0], t[1], t[2]]
+        }
+    };
     // The view transmittance of a ray, as [`shade_pixel`] computes it (one
-    // medium: its closed form; several: `exp(−Σ τ)`), in RGB.
-    let view_transmittance = |ray: &ViewRay| -> [f64; 3] {
+    // medium: its closed form; several: `exp(−Σ τ)`), per channel.
+    let view_transmittance = |ray: &ViewRay| -> [f64; C] {
         let mut crossed = media.iter().filter(|m| m.segment(ray).is_some());
         let t: [f64; C] = match (crossed.next(), crossed.next()) {
             (None, _) => [1.0; C],
@@ -2016,13 +2025,7 @@ fn render_channels<const C: usize, const K: usize>(
                 tau.map(|v| (-v).exp())
             }
         };
-        if spectral {
-            let mut buf = [0.0; SPECTRAL_SAMPLES];
-            buf.copy_from_slice(&t[..SPECTRAL_SAMPLES]);
-            spectrum::spectral_transmittance_to_rgb(&buf)
-        } else {
-            [t[0], t[1], t[2]]
-        }
+        t
     };
     // The same for a traced sample, from its own surface hit and cone tests.
     let traced_code = |x: f64, y: f64, s: &Sample<K>| -> u64 {
@@ -2178,6 +2181,7 @@ fn render_channels<const C: usize, const K: usize>(
             t: [f32; 3],
             depth: f32,
             lights: [[f32; 3]; K],
+            surface_t: [[f32; 3]; K],
         }
         #[derive(Clone, Copy)]
         enum Lights {
@@ -2193,12 +2197,29 @@ fn render_channels<const C: usize, const K: usize>(
         }
         let exact_layers = |ray: &ViewRay, hit: Option<f64>, x: &mut Extra<K>| {
             if need_t {
-                x.t = view_transmittance(ray).map(|v| v.clamp(0.0, 1.0) as f32);
+                let t = view_transmittance(ray);
+                x.t = transmittance_rgb(&t).map(|v| v.clamp(0.0, 1.0) as f32);
+                // Per light: T_view · T(surface → light) at the surface hit
+                // (as `sample_into`), T_view without one.
+                if want_surface_t {
+                    for k in 0..n_stage {
+                        x.surface_t[k] = if hit.is_some() {
+                            let tau = light_path_depth(&stage_lights, &media, k, ray.origin + ray.dir * ray.s_max);
+                            let tc: [f64; C] = std::array::from_fn(|c| t[c] * (-tau[c]).exp());
+                            transmittance_rgb(&tc).map(|v| v.clamp(0.0, 1.0) as f32)
+                        } else {
+                            x.t
+                        };
+                    }
+                }
             }
             if want_depth {
                 x.depth = hit.map_or(DEPTH_NO_HIT, |t| t as f32);
             }
         };
+        // Whether a filled pixel lists per-light values (in-scatter, then
+        // surface transmittance) for the write-back.
+        let listed = want_per_light || want_surface_t;
         // One deferred pixel, given its six samples (in-scatter, error,
         // surface, code) and their pixel indices (for the per-light images),
         // and what it adds to the row's statistics.
@@ -2264,13 +2285,15 @@ fn render_channels<const C: usize, const K: usize>(
                     // in-scatter exactly 0.
                     st.outside += 1;
                     exact_layers(&ray, hit, extra);
-                    ([0.0f32; 3], [0.0f32; 3], 0.0, surface, code, Lights::None)
+                    extra.lights = [[0.0; 3]; K];
+                    let lights = if listed { Lights::Listed(0) } else { Lights::None };
+                    ([0.0f32; 3], [0.0f32; 3], 0.0, surface, code, lights)
                 }
                 Some((surface, code, ray, hit, Some(((l, e), light_error)))) => {
                     st.add_interpolated(&l, &e);
                     exact_layers(&ray, hit, extra);
                     let e = e.map(|v| v as f32);
-                    let lights = if light_images.is_empty() { Lights::None } else { Lights::Listed(0) };
+                    let lights = if listed { Lights::Listed(0) } else { Lights::None };
                     (l.map(|v| v as f32), e, max_of(&e).max(light_error), surface, code, lights)
                 }
                 _ => {
@@ -2282,7 +2305,12 @@ fn render_channels<const C: usize, const K: usize>(
                     for k in 0..light_images.len() {
                         extra.lights[k] = s.lights[k].map(|v| v as f32);
                     }
-                    let lights = if light_images.is_empty() { Lights::None } else { Lights::Listed(0) };
+                    if want_surface_t {
+                        for k in 0..n_stage {
+                            extra.surface_t[k] = surface_transmittance_of(s, k);
+                        }
+                    }
+                    let lights = if listed { Lights::Listed(0) } else { Lights::None };
                     let e = s.e.map(|v| v as f32);
                     (s.l.map(|v| v as f32), e, max_of(&e), s.surface, code, lights)
                 }
@@ -2293,31 +2321,37 @@ fn render_channels<const C: usize, const K: usize>(
         };
         // The ray-dependent layers and per-light in-scatter of the filled
         // pixels, written after each pass (pixel index, extra).
-        let write_extra =
-            |records: &[Record], traced: &[[f32; 3]], t_img: &mut [[f32; 3]], d_img: &mut [f32], lights_img: &mut [Vec<[f32; 3]>]| {
-                for r in records {
-                    if need_t {
-                        t_img[r.i] = r.t;
-                    }
-                    if want_depth {
-                        d_img[r.i] = r.depth;
-                    }
-                    match r.lights {
-                        Lights::None => {}
-                        Lights::Listed(at) => {
-                            for (k, img) in lights_img.iter_mut().enumerate() {
-                                img[r.i] = traced[at as usize + k];
-                            }
-                        }
+        let write_extra = |records: &[Record],
+                           traced: &[[f32; 3]],
+                           t_img: &mut [[f32; 3]],
+                           d_img: &mut [f32],
+                           lights_img: &mut [Vec<[f32; 3]>],
+                           surface_img: &mut [Vec<[f32; 3]>]| {
+            for r in records {
+                if need_t {
+                    t_img[r.i] = r.t;
+                }
+                if want_depth {
+                    d_img[r.i] = r.depth;
+                }
+                if let Lights::Listed(at) = r.lights {
+                    for (img, v) in lights_img.iter_mut().chain(surface_img.iter_mut()).zip(&traced[at as usize..]) {
+                        img[r.i] = *v;
                     }
                 }
-            };
+            }
+        };
         // The record of a filled pixel; a traced pixel's per-light values go to `traced`.
         let record = |i: usize, x: &Extra<K>, lights: Lights, traced: &mut Vec<[f32; 3]>| -> Record {
             let lights = match lights {
                 Lights::Listed(_) => {
                     let at = traced.len() as u32;
-                    traced.extend_from_slice(&x.lights[..n_stage]);
+                    if want_per_light {
+                        traced.extend_from_slice(&x.lights[..n_stage]);
+                    }
+                    if want_surface_t {
+                        traced.extend_from_slice(&x.surface_t[..n_stage]);
+                    }
                     Lights::Listed(at)
                 }
                 Lights::None => Lights::None,
@@ -2329,11 +2363,12 @@ fn render_channels<const C: usize, const K: usize>(
                 lights,
             }
         };
-        let keeps_extra = need_t || want_depth || want_per_light;
+        let keeps_extra = need_t || want_depth || listed;
         let extra0 = Extra::<K> {
             t: [1.0; 3],
             depth: DEPTH_NO_HIT,
             lights: [[0.0; 3]; K],
+            surface_t: [[1.0; 3]; K],
         };
         // Level by level, coarse to fine: the half-spacing s = 2 fills the
         // lattice of even pixels from the multiples of 4, s = 1 the rest.
@@ -2384,7 +2419,14 @@ fn render_channels<const C: usize, const K: usize>(
                 })
                 .collect();
             for (_, records, traced) in &along_x {
-                write_extra(records, traced, &mut transmittance, &mut depth, &mut light_inscatter);
+                write_extra(
+                    records,
+                    traced,
+                    &mut transmittance,
+                    &mut depth,
+                    &mut light_inscatter,
+                    &mut light_surface_transmittance,
+                );
             }
             let images = &light_inscatter;
             type Filled = (Vec<(usize, [f32; 3], [f32; 3], f32, u32, u64)>, Vec<Record>, Vec<[f32; 3]>);
@@ -2432,7 +2474,14 @@ fn render_channels<const C: usize, const K: usize>(
                     }
                 });
             for ((_, records, traced), _) in &along_y {
-                write_extra(records, traced, &mut transmittance, &mut depth, &mut light_inscatter);
+                write_extra(
+                    records,
+                    traced,
+                    &mut transmittance,
+                    &mut depth,
+                    &mut light_inscatter,
+                    &mut light_surface_transmittance,
+                );
             }
             for st in along_x.iter().map(|(st, ..)| st).chain(along_y.iter().map(|(_, st)| st)) {
                 stats.merge(st);
@@ -3189,7 +3238,7 @@ fn render_channels<const C: usize, const K: usize>(
         }
         Ok(_) if scene.output.interpolate_smooth_pixels => report.plan.computed(
             "every lit pixel's view ray",
-            "no pixel interpolated: not with the sun_transmittance or surface_transmittance_per_light layers, with unlit tiles off, an equirectangular camera, or sun or ambient light",
+            "no pixel interpolated: not with the sun_transmittance layer, with unlit tiles off, an equirectangular camera, or sun or ambient light",
         ),
         _ => {}
     }
