@@ -132,7 +132,10 @@ def test_unlit_tiles_are_left_out_without_changing_a_pixel(name: str) -> None:
     not traced. Tracing every pixel instead (skip_unlit_tiles false) gives the
     same in-scatter, per-light and error layers bit for bit, so every left-out
     pixel is exactly 0 and none of its neighbours' filtering changed. A camera
-    inside a beam has no unlit tile. (The interpolation of smooth pixels
+    inside a beam has no unlit tile. With point samples the same holds for
+    the layers that need the rays (transmittance, depth, surface
+    transmittance): unlit tiles give them from the surface hit alone. (The
+    interpolation of smooth pixels
     needs unlit tiles on when no layer needs every ray: it is off on both
     sides here, and tested below.)"""
     scene = json.loads((DATA / f"{name}.json").read_text())
@@ -152,9 +155,21 @@ def test_unlit_tiles_are_left_out_without_changing_a_pixel(name: str) -> None:
     else:
         assert unlit > 0.2 * skipped["inscatter"].shape[0] * skipped["inscatter"].shape[1]
         assert left_out and str(unlit) in left_out[0]["what"]
-    # Asking for a layer that needs every ray (depth) traces every pixel.
+    # Asking for a layer that needs every ray (depth) traces every pixel
+    # under the pixel filter (its passes read unlit pixels as defaults) ...
     _, with_depth = _render_layers(scene, layers=["inscatter", "depth"], **plain)
     assert with_depth["stats"]["pixels_unlit"] == 0
+    # ... and with point samples follows every ray only to its surface in
+    # unlit tiles: transmittance, depth and each light's surface
+    # transmittance are the same bits as with every ray traced in full.
+    ray_layers = layers + ["transmittance", "depth", "surface_transmittance_per_light"]
+    none = {"type": "none"}
+    skipped, report = _render_layers(scene, layers=ray_layers, pixel_filter=none, **plain)
+    traced, _ = _render_layers(scene, layers=ray_layers, pixel_filter=none, skip_unlit_tiles=False, **plain)
+    assert sorted(skipped) == sorted(traced) and len(skipped) == 4 + 2 * len(scene["lights"])
+    for k in skipped:
+        assert np.array_equal(skipped[k], traced[k]), k
+    assert (report["stats"]["pixels_unlit"] > 0) == (name != "camera_in_dense_beam")
 
 
 # Sunlight through a 2 m skylight beside the narrow beam's spot.
@@ -232,7 +247,11 @@ def test_requesting_transmittance_does_not_change_the_inscatter(width_px: float)
         scene, layers=["inscatter"], tolerance=0.1, pixel_filter=pixel_filter, interpolate_smooth_pixels=False
     )
     both, both_report = _render_layers(
-        scene, layers=["inscatter", "transmittance"], tolerance=0.1, pixel_filter=pixel_filter
+        scene,
+        layers=["inscatter", "transmittance"],
+        tolerance=0.1,
+        pixel_filter=pixel_filter,
+        interpolate_smooth_pixels=False,
     )
     assert only_report["stats"]["pixels_unlit"] > 0 and both_report["stats"]["pixels_unlit"] == 0
     assert only_report["error"]["edge_pixels"] == both_report["error"]["edge_pixels"]

@@ -1555,61 +1555,64 @@ fn render_channels<const C: usize, const K: usize>(
     // Floors that end the view rays beneath the lights' cones, for the unlit
     // tiles ([`unlit::Floor`]): of the planes' triangles, the four largest
     // groups by area that qualify.
-    // (Only when the unlit tiles may be used: no layer needs the view rays.)
+    // (Only when the unlit tiles may be used: no layer needs the view rays,
+    // or point samples need them only for the layers that the surface hit
+    // and closed-form transmittance give: `unlit_with_rays`.)
+    let unlit_with_rays = scene.output.pixel_filter.radius() == 0.0 && !scene.output.layers.contains(&LayerKind::SunTransmittance);
     let rays_needed = scene.output.layers.iter().any(|k| {
         matches!(
             k,
             LayerKind::Transmittance | LayerKind::SunTransmittance | LayerKind::SurfaceTransmittancePerLight | LayerKind::Depth
         )
     });
-    let floors: Vec<unlit::Floor> = if scene.output.skip_unlit_tiles && !rays_needed && !tris.is_empty() && !stage_lights.points.is_empty()
-    {
-        let own;
-        let planes = match &smooth_scene {
-            Ok((p, _)) => p,
-            Err(_) => {
-                let Some(p) = smooth::Planes::new_cancellable(&scene.meshes, &tris, &cancelled) else {
-                    return Err(RenderError::Cancelled);
-                };
-                own = p;
-                &own
+    let floors: Vec<unlit::Floor> =
+        if scene.output.skip_unlit_tiles && (!rays_needed || unlit_with_rays) && !tris.is_empty() && !stage_lights.points.is_empty() {
+            let own;
+            let planes = match &smooth_scene {
+                Ok((p, _)) => p,
+                Err(_) => {
+                    let Some(p) = smooth::Planes::new_cancellable(&scene.meshes, &tris, &cancelled) else {
+                        return Err(RenderError::Cancelled);
+                    };
+                    own = p;
+                    &own
+                }
+            };
+            // The four largest plane groups by area (ties: the lower group), then
+            // their triangles. (A group per triangle of a curved million-triangle
+            // mesh: collecting every group's triangles first took ≈ 0.8 s.)
+            let mut area = vec![0.0f64; planes.group_count() + 1];
+            for (i, t) in tris.iter().enumerate() {
+                let g = planes.group_of(i as u32) as usize;
+                if g > 0 {
+                    area[g] += 0.5 * (t.v[1] - t.v[0]).cross(t.v[2] - t.v[0]).length();
+                }
             }
+            let mut largest: Vec<usize> = Vec::with_capacity(5);
+            for g in 1..area.len() {
+                let at = largest.partition_point(|&h| area[h].total_cmp(&area[g]).then(g.cmp(&h)).is_gt());
+                if at < 4 {
+                    largest.insert(at, g);
+                    largest.truncate(4);
+                }
+            }
+            let mut groups: Vec<(u32, Vec<[DVec3; 3]>)> = largest.iter().map(|&g| (g as u32, Vec::new())).collect();
+            for (i, t) in tris.iter().enumerate() {
+                let g = planes.group_of(i as u32);
+                if let Some(k) = largest.iter().position(|&h| h == g as usize) {
+                    groups[k].1.push(t.v);
+                }
+            }
+            groups
+                .iter()
+                .filter_map(|(g, t)| {
+                    let (normal, offset) = planes.plane(*g);
+                    unlit::Floor::new(t, normal, offset, cam.position)
+                })
+                .collect()
+        } else {
+            Vec::new()
         };
-        // The four largest plane groups by area (ties: the lower group), then
-        // their triangles. (A group per triangle of a curved million-triangle
-        // mesh: collecting every group's triangles first took ≈ 0.8 s.)
-        let mut area = vec![0.0f64; planes.group_count() + 1];
-        for (i, t) in tris.iter().enumerate() {
-            let g = planes.group_of(i as u32) as usize;
-            if g > 0 {
-                area[g] += 0.5 * (t.v[1] - t.v[0]).cross(t.v[2] - t.v[0]).length();
-            }
-        }
-        let mut largest: Vec<usize> = Vec::with_capacity(5);
-        for g in 1..area.len() {
-            let at = largest.partition_point(|&h| area[h].total_cmp(&area[g]).then(g.cmp(&h)).is_gt());
-            if at < 4 {
-                largest.insert(at, g);
-                largest.truncate(4);
-            }
-        }
-        let mut groups: Vec<(u32, Vec<[DVec3; 3]>)> = largest.iter().map(|&g| (g as u32, Vec::new())).collect();
-        for (i, t) in tris.iter().enumerate() {
-            let g = planes.group_of(i as u32);
-            if let Some(k) = largest.iter().position(|&h| h == g as usize) {
-                groups[k].1.push(t.v);
-            }
-        }
-        groups
-            .iter()
-            .filter_map(|(g, t)| {
-                let (normal, offset) = planes.plane(*g);
-                unlit::Floor::new(t, normal, offset, cam.position)
-            })
-            .collect()
-    } else {
-        Vec::new()
-    };
     let bvh = if tris.is_empty() {
         report
             .plan
@@ -1855,7 +1858,7 @@ fn render_channels<const C: usize, const K: usize>(
         let perspective = matches!(scene.camera, crate::scene::Camera::Perspective(_));
         let only_stage_light = lights.suns.is_empty() && lights.ambient.iter().all(|a| *a == 0.0);
         match cones {
-            Some(mut volumes) if scene.output.skip_unlit_tiles && !need_ray && perspective && only_stage_light => {
+            Some(mut volumes) if scene.output.skip_unlit_tiles && (!need_ray || unlit_with_rays) && perspective && only_stage_light => {
                 volumes.extend(prisms);
                 let read = if ring > 0 { ring.max(2) + 1 } else { 0 };
                 Some(unlit::unlit_tiles(&cam, &volumes, &floors, ring, read as f64))
@@ -1976,12 +1979,9 @@ fn render_channels<const C: usize, const K: usize>(
         }
     };
     let deferred = |col: usize, row: usize| -> bool { level_of(col, row) > 0 };
-    // A pixel's surface (triangle + 1, 0: none) and topology code
-    // ([`smooth::PRESENT`] set; 0 below it: the ray crosses no light's
-    // volume, in-scatter 0), from one surface hit and the cone tests.
-    // With it, what the ray-dependent layers need: the view ray and the
-    // distance to its surface hit (`None`: no hit).
-    let code_of = |x: f64, y: f64, buf: &mut Vec<(f64, f64)>| -> (u32, u64, ViewRay, Option<f64>) {
+    // A pixel's surface (triangle + 1, 0: none), view ray and the distance
+    // to its surface hit (`None`: no hit), as [`shade_pixel`] finds them.
+    let view_ray_of = |x: f64, y: f64| -> (u32, ViewRay, Option<f64>) {
         let dir = cam.direction(x, y);
         let start = cam.start_distance(dir);
         let (end, surface, hit) = match bvh.as_ref().and_then(|b| b.closest_hit(cam.position, dir, start, cam.clip_end)) {
@@ -1993,8 +1993,18 @@ fn render_channels<const C: usize, const K: usize>(
             dir,
             s_max: (end - start).max(0.0),
         };
+        (surface, ray, hit)
+    };
+    // A pixel's surface (triangle + 1, 0: none) and topology code
+    // ([`smooth::PRESENT`] set; 0 below it: the ray crosses no light's
+    // volume, in-scatter 0), from one surface hit and the cone tests.
+    // With it, what the ray-dependent layers need: the view ray and the
+    // distance to its surface hit (`None`: no hit).
+    let code_of = |x: f64, y: f64, buf: &mut Vec<(f64, f64)>| -> (u32, u64, ViewRay, Option<f64>) {
+        let (surface, ray, hit) = view_ray_of(x, y);
         let Ok((_, casters)) = &smooth_scene else { return (0, 0, ray, hit) };
-        let code = smooth::PRESENT | stage_lights.topology(&ray, buf, &|k| casters[k].may_shadow(cam.position, dir, end));
+        let end = hit.unwrap_or(cam.clip_end);
+        let code = smooth::PRESENT | stage_lights.topology(&ray, buf, &|k| casters[k].may_shadow(cam.position, ray.dir, end));
         (surface, code, ray, hit)
     };
     // A transmittance per channel in RGB, as [`Sample`]s hold it.
@@ -2043,6 +2053,48 @@ fn render_channels<const C: usize, const K: usize>(
             _ => 1,
         }
     };
+    let want_depth = want(LayerKind::Depth);
+    // What a pixel whose in-scatter is not integrated (interpolated, or
+    // outside every light's volume) writes besides it: the ray-dependent
+    // layers, exact, from its own ray (`exact_layers`), and the per-light
+    // in-scatter. In the interpolation's passes `lights` is a scratch of
+    // the fill; the record written back holds where the pixel's per-light
+    // values start in a side list (`Lights`).
+    #[derive(Clone, Copy)]
+    struct Extra<const K: usize> {
+        t: [f32; 3],
+        depth: f32,
+        lights: [[f32; 3]; K],
+        surface_t: [[f32; 3]; K],
+    }
+    let exact_layers = |ray: &ViewRay, hit: Option<f64>, x: &mut Extra<K>| {
+        if need_t {
+            let t = view_transmittance(ray);
+            x.t = transmittance_rgb(&t).map(|v| v.clamp(0.0, 1.0) as f32);
+            // Per light: T_view · T(surface → light) at the surface hit
+            // (as `sample_into`), T_view without one.
+            if want_surface_t {
+                for k in 0..n_stage {
+                    x.surface_t[k] = if hit.is_some() {
+                        let tau = light_path_depth(&stage_lights, &media, k, ray.origin + ray.dir * ray.s_max);
+                        let tc: [f64; C] = std::array::from_fn(|c| t[c] * (-tau[c]).exp());
+                        transmittance_rgb(&tc).map(|v| v.clamp(0.0, 1.0) as f32)
+                    } else {
+                        x.t
+                    };
+                }
+            }
+        }
+        if want_depth {
+            x.depth = hit.map_or(DEPTH_NO_HIT, |t| t as f32);
+        }
+    };
+    let extra0 = Extra::<K> {
+        t: [1.0; 3],
+        depth: DEPTH_NO_HIT,
+        lights: [[0.0; 3]; K],
+        surface_t: [[1.0; 3]; K],
+    };
     // Pass 1: the centre of every pixel, rows in parallel, straight into the
     // output buffers (plus the surface id for silhouette detection).
     // Layers not requested get one dummy element per row instead of a full buffer.
@@ -2050,7 +2102,6 @@ fn render_channels<const C: usize, const K: usize>(
     // Layers filled with a constant (T = 1, no depth) are full-size only when
     // requested: a constant buffer is written page by page (1.3 ms for 4 MB
     // at 768×432), a zeroed one costs nothing until touched.
-    let want_depth = want(LayerKind::Depth);
     let mut transmittance = vec![[1f32; 3]; if need_t { n } else { h }];
     let mut depth = vec![DEPTH_NO_HIT; if want_depth { n } else { h }];
     let mut surface = vec![0u32; n];
@@ -2086,13 +2137,32 @@ fn render_channels<const C: usize, const K: usize>(
             let mut light_row = if want_per_light { vec![[0f32; 3]; n_stage * w] } else { Vec::new() };
             let mut surface_row = if want_surface_t { vec![[0f32; 3]; n_stage * w] } else { Vec::new() };
             let mut s = Sample::<K>::default();
-            let (lo, hi) = row_spans[row];
+            // (A layer that needs the rays: every pixel's, unlit or not.)
+            let (lo, hi) = if need_ray { (0, w) } else { row_spans[row] };
             st.unlit += (w - (hi - lo)) as u64;
+            let mut extra = extra0;
             for col in lo..hi {
                 if unlit(col as isize, row as isize) {
                     // The buffers' defaults: no in-scatter, no error; the
-                    // ray-dependent layers are not requested.
+                    // ray-dependent layers from the surface hit alone.
                     st.unlit += 1;
+                    if need_ray {
+                        let (id, ray, hit) = view_ray_of(col as f64 + 0.5, row as f64 + 0.5);
+                        st.hits += u64::from(hit.is_some());
+                        exact_layers(&ray, hit, &mut extra);
+                        id_row[col] = id;
+                        if need_t {
+                            t_row[col] = extra.t;
+                        }
+                        if want_depth {
+                            d_row[col] = extra.depth;
+                        }
+                        if want_surface_t {
+                            for k in 0..n_stage {
+                                surface_row[k * w + col] = extra.surface_t[k];
+                            }
+                        }
+                    }
                     continue;
                 }
                 if deferred(col, row) {
@@ -2171,18 +2241,6 @@ fn render_channels<const C: usize, const K: usize>(
     // pixels), then along y on the rows between (reading the lattice rows,
     // now complete; written back after).
     if smooth_on {
-        // What a deferred pixel writes besides its in-scatter, error, surface
-        // and code: the ray-dependent layers (exact, from its own ray) and
-        // the per-light in-scatter.
-        // `lights` is a scratch of the fill; the record written back holds
-        // where the pixel's per-light values start in a side list (`Lights`).
-        #[derive(Clone, Copy)]
-        struct Extra<const K: usize> {
-            t: [f32; 3],
-            depth: f32,
-            lights: [[f32; 3]; K],
-            surface_t: [[f32; 3]; K],
-        }
         #[derive(Clone, Copy)]
         enum Lights {
             None,
@@ -2195,28 +2253,6 @@ fn render_channels<const C: usize, const K: usize>(
             depth: f32,
             lights: Lights,
         }
-        let exact_layers = |ray: &ViewRay, hit: Option<f64>, x: &mut Extra<K>| {
-            if need_t {
-                let t = view_transmittance(ray);
-                x.t = transmittance_rgb(&t).map(|v| v.clamp(0.0, 1.0) as f32);
-                // Per light: T_view · T(surface → light) at the surface hit
-                // (as `sample_into`), T_view without one.
-                if want_surface_t {
-                    for k in 0..n_stage {
-                        x.surface_t[k] = if hit.is_some() {
-                            let tau = light_path_depth(&stage_lights, &media, k, ray.origin + ray.dir * ray.s_max);
-                            let tc: [f64; C] = std::array::from_fn(|c| t[c] * (-tau[c]).exp());
-                            transmittance_rgb(&tc).map(|v| v.clamp(0.0, 1.0) as f32)
-                        } else {
-                            x.t
-                        };
-                    }
-                }
-            }
-            if want_depth {
-                x.depth = hit.map_or(DEPTH_NO_HIT, |t| t as f32);
-            }
-        };
         // Whether a filled pixel lists per-light values (in-scatter, then
         // surface transmittance) for the write-back.
         let listed = want_per_light || want_surface_t;
@@ -2284,6 +2320,7 @@ fn render_channels<const C: usize, const K: usize>(
                     // The ray crosses no light's volume (nor do the samples):
                     // in-scatter exactly 0.
                     st.outside += 1;
+                    st.hits += u64::from(hit.is_some());
                     exact_layers(&ray, hit, extra);
                     extra.lights = [[0.0; 3]; K];
                     let lights = if listed { Lights::Listed(0) } else { Lights::None };
@@ -2291,6 +2328,7 @@ fn render_channels<const C: usize, const K: usize>(
                 }
                 Some((surface, code, ray, hit, Some(((l, e), light_error)))) => {
                     st.add_interpolated(&l, &e);
+                    st.hits += u64::from(hit.is_some());
                     exact_layers(&ray, hit, extra);
                     let e = e.map(|v| v as f32);
                     let lights = if listed { Lights::Listed(0) } else { Lights::None };
@@ -2364,12 +2402,6 @@ fn render_channels<const C: usize, const K: usize>(
             }
         };
         let keeps_extra = need_t || want_depth || listed;
-        let extra0 = Extra::<K> {
-            t: [1.0; 3],
-            depth: DEPTH_NO_HIT,
-            lights: [[0.0; 3]; K],
-            surface_t: [[1.0; 3]; K],
-        };
         // Level by level, coarse to fine: the half-spacing s = 2 fills the
         // lattice of even pixels from the multiples of 4, s = 1 the rest.
         for s in [2usize, 1] {
@@ -3246,7 +3278,7 @@ fn render_channels<const C: usize, const K: usize>(
         report.plan.left_out(
             format!("view rays of {} pixels", stats.unlit),
             format!(
-                "unlit: in tiles of {0}×{0} px whose rays, padded by every pixel their results read, miss every light's illumination volume (a separating plane through the eye, per light: spot cones, window prisms; or, where all their rays end on a floor, a plane separating their segments from the cone); their in-scatter is exactly 0 and no requested layer needs the ray",
+                "unlit: in tiles of {0}×{0} px whose rays, padded by every pixel their results read, miss every light's illumination volume (a separating plane through the eye, per light: spot cones, window prisms; or, where all their rays end on a floor, a plane separating their segments from the cone); their in-scatter is exactly 0, and the layers that need the ray (transmittance, depth, surface transmittance; point samples only) take its surface hit and closed-form transmittance alone",
                 unlit::TILE
             ),
         );
