@@ -3276,7 +3276,11 @@ fn render_channels<const C: usize, const K: usize>(
     }
     if stats.unlit > 0 {
         report.plan.left_out(
-            format!("view rays of {} pixels", stats.unlit),
+            if need_ray {
+                format!("scattering integral on the view rays of {} pixels", stats.unlit)
+            } else {
+                format!("view rays of {} pixels", stats.unlit)
+            },
             format!(
                 "unlit: in tiles of {0}×{0} px whose rays, padded by every pixel their results read, miss every light's illumination volume (a separating plane through the eye, per light: spot cones, window prisms; or, where all their rays end on a floor, a plane separating their segments from the cone); their in-scatter is exactly 0, and the layers that need the ray (transmittance, depth, surface transmittance; point samples only) take its surface hit and closed-form transmittance alone",
                 unlit::TILE
