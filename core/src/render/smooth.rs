@@ -760,18 +760,36 @@ mod tests {
     /// points along it to the light, against the triangles) is one the
     /// pyramids say may be, and most unshadowed rays in the light's reach
     /// are told apart from them.
-    #[test]
-    fn shadow_pyramids_hold_every_shadowed_ray() {
-        use crate::geometry::bvh::Bvh;
-        let mut state = 0x9e37_79b9_7f4a_7c15u64;
-        let mut rand = move || {
-            // splitmix64
+    /// Uniform numbers in [0, 1) from splitmix64.
+    fn splitmix(mut state: u64) -> impl FnMut() -> f64 {
+        move || {
             state = state.wrapping_add(0x9e37_79b9_7f4a_7c15);
             let mut z = state;
             z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
             z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
             ((z ^ (z >> 31)) >> 11) as f64 / (1u64 << 53) as f64
-        };
+        }
+    }
+
+    /// The view ray from `eye` towards `target`, up to its first hit: whether
+    /// some point of it is shadowed from the light at `apex` (4 000 points,
+    /// the first 40 m), and whether `casters` say it may be.
+    fn shadowed_and_flagged(casters: &Casters, bvh: &crate::geometry::bvh::Bvh, apex: DVec3, eye: DVec3, target: DVec3) -> (bool, bool) {
+        let dir = (target - eye).normalize();
+        let t_end = bvh.closest_hit(eye, dir, 0.0, f64::INFINITY).map_or(f64::INFINITY, |h| h.t);
+        let reach = t_end.min(40.0);
+        let shadowed = (0..4000).any(|i| {
+            let p = eye + dir * reach * (i as f64 + 0.5) / 4000.0;
+            let to = apex - p;
+            bvh.any_hit(p, to.normalize(), 1e-9, to.length() * (1.0 - 1e-9))
+        });
+        (shadowed, casters.may_shadow(eye, dir, t_end))
+    }
+
+    #[test]
+    fn shadow_pyramids_hold_every_shadowed_ray() {
+        use crate::geometry::bvh::Bvh;
+        let mut rand = splitmix(0x9e37_79b9_7f4a_7c15);
         let (corners, cube_tris) = crate::geometry::cube(DVec3::ZERO, 0.5);
         let cube: Vec<[f64; 3]> = corners.iter().map(|c| c.to_array()).collect();
         let mesh = |name: &str, positions: Vec<[f64; 3]>, triangles: Vec<[u32; 3]>, transform: crate::scene::Transform| Mesh {
@@ -829,21 +847,18 @@ mod tests {
                 continue;
             }
             let target = DVec3::new(6.0 * rand() - 3.0, 6.0 * rand() - 3.0, 6.0 * rand() - 0.5);
-            let dir = (target - eye).normalize();
-            let t_end = bvh.closest_hit(eye, dir, 0.0, f64::INFINITY).map_or(f64::INFINITY, |h| h.t);
-            let reach = t_end.min(40.0);
-            let shadowed = (0..4000).any(|i| {
-                let p = eye + dir * reach * (i as f64 + 0.5) / 4000.0;
-                let to = apex - p;
-                bvh.any_hit(p, to.normalize(), 1e-9, to.length() * (1.0 - 1e-9))
-            });
-            let may = casters.may_shadow(eye, dir, t_end);
-            if shadowed {
-                assert!(may, "trial {trial}: eye {eye}, dir {dir}, end {t_end}: shadowed but not flagged");
-                counts[0] += 1;
+            let (shadowed, may) = shadowed_and_flagged(&casters, &bvh, apex, eye, target);
+            assert!(
+                may || !shadowed,
+                "trial {trial}: eye {eye}, target {target}: shadowed but not flagged"
+            );
+            counts[if shadowed {
+                0
+            } else if may {
+                2
             } else {
-                counts[if may { 2 } else { 1 }] += 1;
-            }
+                1
+            }] += 1;
         }
         assert!(counts[0] > 300 && counts[1] > 300, "{counts:?}");
         assert!(counts[1] > counts[2], "{counts:?}");
@@ -852,14 +867,7 @@ mod tests {
     #[test]
     fn a_shadow_ball_holds_every_ray_a_faceted_sphere_shadows() {
         use crate::geometry::bvh::Bvh;
-        let mut state = 0x2545_f491_4f6c_dd1du64;
-        let mut rand = || {
-            state = state.wrapping_add(0x9e37_79b9_7f4a_7c15);
-            let mut z = state;
-            z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
-            z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
-            ((z ^ (z >> 31)) >> 11) as f64 / (1u64 << 53) as f64
-        };
+        let mut rand = splitmix(0x2545_f491_4f6c_dd1d);
         // A UV sphere (radius 0.8 at z = 2.5, 12 × 16 facets: 192 planes) on a floor.
         let (rings, segments, r, c) = (12usize, 16usize, 0.8, [0.2, -0.1, 2.5]);
         let mut positions = vec![[c[0], c[1], c[2] + r], [c[0], c[1], c[2] - r]];
@@ -924,21 +932,18 @@ mod tests {
                 continue;
             }
             let target = DVec3::new(6.0 * rand() - 3.0, 6.0 * rand() - 3.0, 6.0 * rand() - 0.5);
-            let dir = (target - eye).normalize();
-            let t_end = bvh.closest_hit(eye, dir, 0.0, f64::INFINITY).map_or(f64::INFINITY, |h| h.t);
-            let reach = t_end.min(40.0);
-            let shadowed = (0..4000).any(|i| {
-                let p = eye + dir * reach * (i as f64 + 0.5) / 4000.0;
-                let to = apex - p;
-                bvh.any_hit(p, to.normalize(), 1e-9, to.length() * (1.0 - 1e-9))
-            });
-            let may = casters.may_shadow(eye, dir, t_end);
-            if shadowed {
-                assert!(may, "trial {trial}: eye {eye}, dir {dir}, end {t_end}: shadowed but not flagged");
-                counts[0] += 1;
+            let (shadowed, may) = shadowed_and_flagged(&casters, &bvh, apex, eye, target);
+            assert!(
+                may || !shadowed,
+                "trial {trial}: eye {eye}, target {target}: shadowed but not flagged"
+            );
+            counts[if shadowed {
+                0
+            } else if may {
+                2
             } else {
-                counts[if may { 2 } else { 1 }] += 1;
-            }
+                1
+            }] += 1;
         }
         // Not vacuous: rays in the shadow and rays told apart from it.
         assert!(counts[0] > 100 && counts[1] > 300, "{counts:?}");
