@@ -2402,6 +2402,19 @@ fn render_channels<const C: usize, const K: usize>(
             }
         };
         let keeps_extra = need_t || want_depth || listed;
+        // A pass's records into the images (between passes: the next one reads them).
+        macro_rules! write_back {
+            ($records:expr, $traced:expr) => {
+                write_extra(
+                    $records,
+                    $traced,
+                    &mut transmittance,
+                    &mut depth,
+                    &mut light_inscatter,
+                    &mut light_surface_transmittance,
+                )
+            };
+        }
         // Level by level, coarse to fine: the half-spacing s = 2 fills the
         // lattice of even pixels from the multiples of 4, s = 1 the rest.
         for s in [2usize, 1] {
@@ -2451,14 +2464,7 @@ fn render_channels<const C: usize, const K: usize>(
                 })
                 .collect();
             for (_, records, traced) in &along_x {
-                write_extra(
-                    records,
-                    traced,
-                    &mut transmittance,
-                    &mut depth,
-                    &mut light_inscatter,
-                    &mut light_surface_transmittance,
-                );
+                write_back!(records, traced);
             }
             let images = &light_inscatter;
             type Filled = (Vec<(usize, [f32; 3], [f32; 3], f32, u32, u64)>, Vec<Record>, Vec<[f32; 3]>);
@@ -2506,14 +2512,7 @@ fn render_channels<const C: usize, const K: usize>(
                     }
                 });
             for ((_, records, traced), _) in &along_y {
-                write_extra(
-                    records,
-                    traced,
-                    &mut transmittance,
-                    &mut depth,
-                    &mut light_inscatter,
-                    &mut light_surface_transmittance,
-                );
+                write_back!(records, traced);
             }
             for st in along_x.iter().map(|(st, ..)| st).chain(along_y.iter().map(|(_, st)| st)) {
                 stats.merge(st);

@@ -760,6 +760,24 @@ mod tests {
     /// points along it to the light, against the triangles) is one the
     /// pyramids say may be, and most unshadowed rays in the light's reach
     /// are told apart from them.
+    /// A mesh that is seen and casts shadows.
+    fn mesh(name: &str, positions: Vec<[f64; 3]>, triangles: Vec<[u32; 3]>, transform: crate::scene::Transform) -> Mesh {
+        Mesh {
+            name: name.into(),
+            positions,
+            triangles,
+            transform,
+            visible_to_camera: true,
+            casts_shadows: true,
+        }
+    }
+
+    /// A floor 60 m wide at z = 0.
+    fn floor() -> Mesh {
+        let corners = vec![[-30.0, -30.0, 0.0], [30.0, -30.0, 0.0], [30.0, 30.0, 0.0], [-30.0, 30.0, 0.0]];
+        mesh("floor", corners, vec![[0, 1, 2], [0, 2, 3]], Default::default())
+    }
+
     /// Uniform numbers in [0, 1) from splitmix64.
     fn splitmix(mut state: u64) -> impl FnMut() -> f64 {
         move || {
@@ -771,10 +789,11 @@ mod tests {
         }
     }
 
-    /// The view ray from `eye` towards `target`, up to its first hit: whether
-    /// some point of it is shadowed from the light at `apex` (4 000 points,
-    /// the first 40 m), and whether `casters` say it may be.
-    fn shadowed_and_flagged(casters: &Casters, bvh: &crate::geometry::bvh::Bvh, apex: DVec3, eye: DVec3, target: DVec3) -> (bool, bool) {
+    /// The view ray from `eye` towards `target`, up to its first hit: if some
+    /// point of it is shadowed from the light at `apex` (4 000 points, the
+    /// first 40 m), `casters` must say it may be. Counted in `counts`:
+    /// shadowed, unshadowed and told apart, unshadowed but flagged.
+    fn count_ray(casters: &Casters, bvh: &crate::geometry::bvh::Bvh, apex: DVec3, eye: DVec3, target: DVec3, counts: &mut [usize; 3]) {
         let dir = (target - eye).normalize();
         let t_end = bvh.closest_hit(eye, dir, 0.0, f64::INFINITY).map_or(f64::INFINITY, |h| h.t);
         let reach = t_end.min(40.0);
@@ -783,7 +802,18 @@ mod tests {
             let to = apex - p;
             bvh.any_hit(p, to.normalize(), 1e-9, to.length() * (1.0 - 1e-9))
         });
-        (shadowed, casters.may_shadow(eye, dir, t_end))
+        let may = casters.may_shadow(eye, dir, t_end);
+        assert!(
+            may || !shadowed,
+            "eye {eye}, target {target}, end {t_end}: shadowed but not flagged"
+        );
+        counts[if shadowed {
+            0
+        } else if may {
+            2
+        } else {
+            1
+        }] += 1;
     }
 
     #[test]
@@ -792,21 +822,8 @@ mod tests {
         let mut rand = splitmix(0x9e37_79b9_7f4a_7c15);
         let (corners, cube_tris) = crate::geometry::cube(DVec3::ZERO, 0.5);
         let cube: Vec<[f64; 3]> = corners.iter().map(|c| c.to_array()).collect();
-        let mesh = |name: &str, positions: Vec<[f64; 3]>, triangles: Vec<[u32; 3]>, transform: crate::scene::Transform| Mesh {
-            name: name.into(),
-            positions,
-            triangles,
-            transform,
-            visible_to_camera: true,
-            casts_shadows: true,
-        };
         let meshes = vec![
-            mesh(
-                "floor",
-                vec![[-30.0, -30.0, 0.0], [30.0, -30.0, 0.0], [30.0, 30.0, 0.0], [-30.0, 30.0, 0.0]],
-                vec![[0, 1, 2], [0, 2, 3]],
-                Default::default(),
-            ),
+            floor(),
             mesh(
                 "box",
                 cube,
@@ -847,18 +864,7 @@ mod tests {
                 continue;
             }
             let target = DVec3::new(6.0 * rand() - 3.0, 6.0 * rand() - 3.0, 6.0 * rand() - 0.5);
-            let (shadowed, may) = shadowed_and_flagged(&casters, &bvh, apex, eye, target);
-            assert!(
-                may || !shadowed,
-                "trial {trial}: eye {eye}, target {target}: shadowed but not flagged"
-            );
-            counts[if shadowed {
-                0
-            } else if may {
-                2
-            } else {
-                1
-            }] += 1;
+            count_ray(&casters, &bvh, apex, eye, target, &mut counts);
         }
         assert!(counts[0] > 300 && counts[1] > 300, "{counts:?}");
         assert!(counts[1] > counts[2], "{counts:?}");
@@ -892,22 +898,7 @@ mod tests {
                 triangles.push([ring(i, j), ring(i + 1, j + 1), ring(i, j + 1)]);
             }
         }
-        let mesh = |name: &str, positions: Vec<[f64; 3]>, triangles: Vec<[u32; 3]>| Mesh {
-            name: name.into(),
-            positions,
-            triangles,
-            transform: Default::default(),
-            visible_to_camera: true,
-            casts_shadows: true,
-        };
-        let meshes = vec![
-            mesh(
-                "floor",
-                vec![[-30.0, -30.0, 0.0], [30.0, -30.0, 0.0], [30.0, 30.0, 0.0], [-30.0, 30.0, 0.0]],
-                vec![[0, 1, 2], [0, 2, 3]],
-            ),
-            mesh("sphere", positions, triangles),
-        ];
+        let meshes = vec![floor(), mesh("sphere", positions, triangles, Default::default())];
         let (tris, _) = crate::geometry::world_triangles(&meshes);
         let planes = Planes::new(&meshes, &tris);
         let apex = DVec3::new(0.6, 0.4, 5.5);
@@ -932,18 +923,7 @@ mod tests {
                 continue;
             }
             let target = DVec3::new(6.0 * rand() - 3.0, 6.0 * rand() - 3.0, 6.0 * rand() - 0.5);
-            let (shadowed, may) = shadowed_and_flagged(&casters, &bvh, apex, eye, target);
-            assert!(
-                may || !shadowed,
-                "trial {trial}: eye {eye}, target {target}: shadowed but not flagged"
-            );
-            counts[if shadowed {
-                0
-            } else if may {
-                2
-            } else {
-                1
-            }] += 1;
+            count_ray(&casters, &bvh, apex, eye, target, &mut counts);
         }
         // Not vacuous: rays in the shadow and rays told apart from it.
         assert!(counts[0] > 100 && counts[1] > 300, "{counts:?}");
