@@ -1928,8 +1928,8 @@ fn render_channels<const C: usize, const K: usize>(
     let light_images: Vec<(f64, f64)> = polar_images.iter().map(|p| p.at).collect();
     // Pixels may be interpolated ([`smooth`]) with unlit tiles on, or when
     // a layer needs every ray anyway (transmittance, depth: then unlit tiles
-    // are off, and the deferred pixels outside every beam cost a surface hit
-    // and cone tests).
+    // are on with point samples only; under a pixel filter the deferred
+    // pixels outside every beam cost a surface hit and cone tests).
     let smooth_on = want_topology && (need_ray || unlit_grid.is_some());
     // The filter across beams from their profiles ([`profile`]): when all
     // in-scatter comes from spot lamps in media without boundaries (the
