@@ -1704,6 +1704,23 @@ fn render_channels<const C: usize, const K: usize>(
         && matches!(scene.camera, crate::scene::Camera::Perspective(_))
         && lights.suns.is_empty()
         && lights.ambient.iter().all(|a| *a == 0.0);
+    // A transmittance per channel in RGB, as [`Sample`]s hold it.
+    let transmittance_rgb = |t: &[f64; C]| -> [f64; 3] {
+        if spectral {
+            let mut buf = [0.0; SPECTRAL_SAMPLES];
+            buf.copy_from_slice(&t[..SPECTRAL_SAMPLES]);
+            spectrum::spectral_transmittance_to_rgb(&buf)
+        } else {
+            [t[0], t[1], t[2]]
+        }
+    };
+    // Per light `k`: T_view · T(surface point `sp` → light), in RGB
+    // (`t_view` per channel), unclamped.
+    let surface_transmittance = |t_view: &[f64; C], sp: DVec3, k: usize| -> [f64; 3] {
+        let tau = light_path_depth(&stage_lights, &media, k, sp);
+        let tc: [f64; C] = std::array::from_fn(|c| t_view[c] * (-tau[c]).exp());
+        transmittance_rgb(&tc)
+    };
     let sample_into = |x: f64, y: f64, out: &mut Sample<K>| {
         // Every pass (point samples, interpolation checks, the pixel filter's
         // lattice) traces through here, so this one test stops them all; the
@@ -1764,18 +1781,7 @@ fn render_channels<const C: usize, const K: usize>(
         }
         if want_surface_t && let Some(sp) = p.surface_point {
             for (k, out) in surface_t.iter_mut().enumerate().take(n_stage) {
-                let tau = light_path_depth(&stage_lights, &media, k, sp);
-                let mut tc = [0.0; C];
-                for c in 0..C {
-                    tc[c] = p.result.transmittance[c] * (-tau[c]).exp();
-                }
-                *out = if spectral {
-                    let mut buf = [0.0; SPECTRAL_SAMPLES];
-                    buf.copy_from_slice(&tc[..SPECTRAL_SAMPLES]);
-                    spectrum::spectral_transmittance_to_rgb(&buf)
-                } else {
-                    [tc[0], tc[1], tc[2]]
-                };
+                *out = surface_transmittance(&p.result.transmittance, sp, k);
             }
         }
         // Closed forms carry their rounding bound as a relative constant; only
@@ -2007,16 +2013,6 @@ fn render_channels<const C: usize, const K: usize>(
         let code = smooth::PRESENT | stage_lights.topology(&ray, buf, &|k| casters[k].may_shadow(cam.position, ray.dir, end));
         (surface, code, ray, hit)
     };
-    // A transmittance per channel in RGB, as [`Sample`]s hold it.
-    let transmittance_rgb = |t: &[f64; C]| -> [f64; 3] {
-        if spectral {
-            let mut buf = [0.0; SPECTRAL_SAMPLES];
-            buf.copy_from_slice(&t[..SPECTRAL_SAMPLES]);
-            spectrum::spectral_transmittance_to_rgb(&buf)
-        } else {
-            [t[0], t[1], t[2]]
-        }
-    };
     // The view transmittance of a ray, as [`shade_pixel`] computes it (one
     // medium: its closed form; several: `exp(−Σ τ)`), per channel.
     let view_transmittance = |ray: &ViewRay| -> [f64; C] {
@@ -2076,9 +2072,8 @@ fn render_channels<const C: usize, const K: usize>(
             if want_surface_t {
                 for k in 0..n_stage {
                     x.surface_t[k] = if hit.is_some() {
-                        let tau = light_path_depth(&stage_lights, &media, k, ray.origin + ray.dir * ray.s_max);
-                        let tc: [f64; C] = std::array::from_fn(|c| t[c] * (-tau[c]).exp());
-                        transmittance_rgb(&tc).map(|v| v.clamp(0.0, 1.0) as f32)
+                        let sp = ray.origin + ray.dir * ray.s_max;
+                        surface_transmittance(&t, sp, k).map(|v| v.clamp(0.0, 1.0) as f32)
                     } else {
                         x.t
                     };
