@@ -967,15 +967,18 @@ pub struct Output {
     #[serde(default)]
     pub pixel_filter: PixelFilter,
     /// Leave out the view rays of image tiles that provably miss every
-    /// light's illumination volume, when only in-scatter layers (and the
-    /// error) are requested: their in-scatter is exactly 0. Default true;
-    /// false traces every pixel (same images, for checking).
+    /// light's illumination volume: their in-scatter is exactly 0. With
+    /// transmittance, depth or surface-transmittance layers (point samples
+    /// only) those rays are followed to their surface and nothing is
+    /// integrated. Default true; false traces every pixel (for checking;
+    /// it also turns `interpolate_smooth_pixels` off, whose machinery it
+    /// shares, so the images then differ within their estimates).
     #[serde(default = "default_true")]
     pub skip_unlit_tiles: bool,
     /// Interpolate pixels where the in-scatter is provably smooth (inside a
-    /// beam, away from silhouettes, shadows and lights' images), when only
-    /// in-scatter layers (and the error) are requested and unlit tiles are
-    /// left out: the view rays of a lattice of pixels (x and y multiples
+    /// beam, away from silhouettes, shadows and lights' images), with
+    /// `skip_unlit_tiles` on and without the `sun_transmittance` layer: the
+    /// view rays of a lattice of pixels (x and y multiples
     /// of 4) are traced, the others are interpolated in two levels when
     /// their error estimate meets the tolerance, else traced (see
     /// `render::smooth`). Default true; false traces every pixel.
