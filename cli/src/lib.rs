@@ -581,7 +581,7 @@ pub fn render_to_files_reporting(
             source,
         })?;
     }
-    io::write_layers_exr(out, images.width, images.height, &images.exr_layers())?;
+    io::write_layer_refs_exr(out, images.width, images.height, &images.exr_layer_refs())?;
     let t = report.time("write_exr", t);
     if let Some(p) = preview {
         if cancelled() {

@@ -20,7 +20,7 @@ use std::sync::atomic::{AtomicU64, Ordering};
 pub mod exr_image;
 pub mod preview;
 
-pub use exr_image::{ImageLayer, read_layers_exr, write_layers_exr, write_rgb_exr};
+pub use exr_image::{ChannelSamples, ImageLayer, LayerRef, read_layers_exr, write_layer_refs_exr, write_layers_exr, write_rgb_exr};
 pub use preview::{auto_exposure, write_png_preview};
 
 /// Errors of image reading and writing.

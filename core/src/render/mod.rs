@@ -28,7 +28,7 @@ pub mod unlit;
 use crate::geometry::bvh::{Bvh, Triangle};
 use crate::geometry::camera::CameraRays;
 use crate::geometry::world_triangles;
-use crate::io::ImageLayer;
+use crate::io::{ChannelSamples, ImageLayer, LayerRef};
 use crate::medium;
 use crate::medium::ellipsoid::Ellipsoid;
 use crate::medium::fog_layer::FogLayer;
@@ -117,47 +117,70 @@ pub struct Images {
     pub surface_layer_names: Vec<String>,
 }
 
-fn split_rgb(name: &str, px: &[[f32; 3]]) -> ImageLayer {
-    ImageLayer {
-        name: name.into(),
-        channels: vec![
-            ("R".into(), px.iter().map(|p| p[0]).collect()),
-            ("G".into(), px.iter().map(|p| p[1]).collect()),
-            ("B".into(), px.iter().map(|p| p[2]).collect()),
-        ],
+/// A layer of RGB pixels as three borrowed channels.
+fn rgb_layer<'a>(name: &'a str, px: &'a [[f32; 3]]) -> LayerRef<'a> {
+    LayerRef {
+        name,
+        channels: ["R", "G", "B"]
+            .into_iter()
+            .enumerate()
+            .map(|(c, n)| (n, ChannelSamples::Rgb(px, c)))
+            .collect(),
     }
 }
 
 impl Images {
-    /// The requested layers as EXR layers (`inscatter.R`, …, `depth.Z`).
-    pub fn exr_layers(&self) -> Vec<ImageLayer> {
+    /// The requested layers as EXR layers (`inscatter.R`, …, `depth.Z`),
+    /// borrowed from the images (what [`crate::io::write_layer_refs_exr`] writes).
+    pub fn exr_layer_refs(&self) -> Vec<LayerRef<'_>> {
         let mut out = Vec::new();
         for k in &self.layers {
             if *k == LayerKind::InscatterPerLight {
                 for (name, px) in self.light_layer_names.iter().zip(&self.light_inscatter) {
-                    out.push(split_rgb(name, px));
+                    out.push(rgb_layer(name, px));
                 }
                 continue;
             }
             if *k == LayerKind::SurfaceTransmittancePerLight {
                 for (name, px) in self.surface_layer_names.iter().zip(&self.light_surface_transmittance) {
-                    out.push(split_rgb(name, px));
+                    out.push(rgb_layer(name, px));
                 }
                 continue;
             }
             out.push(match k {
-                LayerKind::Inscatter => split_rgb("inscatter", &self.inscatter),
-                LayerKind::Transmittance => split_rgb("transmittance", &self.transmittance),
-                LayerKind::SunTransmittance => split_rgb("sun_transmittance", &self.sun_transmittance),
-                LayerKind::Error => split_rgb("error", &self.error),
-                LayerKind::Depth => ImageLayer {
-                    name: "depth".into(),
-                    channels: vec![("Z".into(), self.depth.clone())],
+                LayerKind::Inscatter => rgb_layer("inscatter", &self.inscatter),
+                LayerKind::Transmittance => rgb_layer("transmittance", &self.transmittance),
+                LayerKind::SunTransmittance => rgb_layer("sun_transmittance", &self.sun_transmittance),
+                LayerKind::Error => rgb_layer("error", &self.error),
+                LayerKind::Depth => LayerRef {
+                    name: "depth",
+                    channels: vec![("Z", ChannelSamples::Plane(&self.depth))],
                 },
                 LayerKind::InscatterPerLight | LayerKind::SurfaceTransmittancePerLight => unreachable!("handled above"),
             });
         }
         out
+    }
+
+    /// The requested layers as owned EXR layers (copies of [`Self::exr_layer_refs`]).
+    pub fn exr_layers(&self) -> Vec<ImageLayer> {
+        self.exr_layer_refs()
+            .into_iter()
+            .map(|l| ImageLayer {
+                name: l.name.to_owned(),
+                channels: l
+                    .channels
+                    .into_iter()
+                    .map(|(n, v)| {
+                        let samples = match v {
+                            ChannelSamples::Plane(p) => p.to_vec(),
+                            ChannelSamples::Rgb(px, c) => px.iter().map(|p| p[c]).collect(),
+                        };
+                        (n.to_owned(), samples)
+                    })
+                    .collect(),
+            })
+            .collect()
     }
 }
 
