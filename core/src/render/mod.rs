@@ -2138,9 +2138,24 @@ fn render_channels<const C: usize, const K: usize>(
     // Rows done; the count and the callback under one lock, so that the
     // calls arrive in order and the last reports the total.
     let done = std::sync::Mutex::new(0usize);
-    // Per row: its stats, and the per-light in-scatter and surface-transmittance rows.
-    type RowOut = (RowStats, Vec<[f32; 3]>, Vec<[f32; 3]>);
-    let row_stats: Vec<RowOut> = inscatter
+    // The per-light layers, written by the rows in place: per row, its slice
+    // of every light's image. (Rows of their own, copied after the pass,
+    // were 100 MB of temporaries and a serial copy at 1920×1080 with four
+    // lights, and `vec![vec![..]; k]` cloned each zeroed image.) A pixel the
+    // pass does not write stays 0, as the rows' defaults were.
+    let mut light_inscatter: Vec<Vec<[f32; 3]>> = if want_per_light {
+        (0..n_stage).map(|_| vec![[0f32; 3]; n]).collect()
+    } else {
+        Vec::new()
+    };
+    let mut light_surface_transmittance: Vec<Vec<[f32; 3]>> = if want_surface_t {
+        (0..n_stage).map(|_| vec![[0f32; 3]; n]).collect()
+    } else {
+        Vec::new()
+    };
+    let light_rows = rows_of_images(&mut light_inscatter, w, h);
+    let surface_rows = rows_of_images(&mut light_surface_transmittance, w, h);
+    let row_stats: Vec<RowStats> = inscatter
         .par_chunks_mut(w)
         .zip(transmittance.par_chunks_mut(t_chunk))
         .zip(depth.par_chunks_mut(d_chunk))
@@ -2149,11 +2164,11 @@ fn render_channels<const C: usize, const K: usize>(
         .zip(error.par_chunks_mut(err_chunk))
         .zip(own_error.par_chunks_mut(if smooth_on || profile_on { w } else { 1 }))
         .zip(codes.par_chunks_mut(smooth_chunk))
+        .zip(light_rows.into_par_iter().zip(surface_rows.into_par_iter()))
         .enumerate()
-        .map(|(row, (((((((l_row, t_row), d_row), id_row), s_row), e_row), oe_row), code_row))| {
+        .map(|(row, (chunks, (mut light_row, mut surface_row)))| {
+            let (((((((l_row, t_row), d_row), id_row), s_row), e_row), oe_row), code_row) = chunks;
             let mut st = RowStats::default();
-            let mut light_row = if want_per_light { vec![[0f32; 3]; n_stage * w] } else { Vec::new() };
-            let mut surface_row = if want_surface_t { vec![[0f32; 3]; n_stage * w] } else { Vec::new() };
             let mut s = Sample::<K>::default();
             // (A layer that needs the rays: every pixel's, unlit or not.)
             let (lo, hi) = if need_ray { (0, w) } else { row_spans[row] };
@@ -2177,7 +2192,7 @@ fn render_channels<const C: usize, const K: usize>(
                         }
                         if want_surface_t {
                             for k in 0..n_stage {
-                                surface_row[k * w + col] = extra.surface_t[k];
+                                surface_row[k][col] = extra.surface_t[k];
                             }
                         }
                     }
@@ -2189,12 +2204,12 @@ fn render_channels<const C: usize, const K: usize>(
                 sample_into(col as f64 + 0.5, row as f64 + 0.5, &mut s);
                 if want_per_light {
                     for k in 0..n_stage {
-                        light_row[k * w + col] = s.lights[k].map(|v| v as f32);
+                        light_row[k][col] = s.lights[k].map(|v| v as f32);
                     }
                 }
                 if want_surface_t {
                     for k in 0..n_stage {
-                        surface_row[k * w + col] = surface_transmittance_of(&s, k);
+                        surface_row[k][col] = surface_transmittance_of(&s, k);
                     }
                 }
                 let e = s.e.map(|v| v as f32);
@@ -2225,32 +2240,12 @@ fn render_channels<const C: usize, const K: usize>(
                 *d += 1;
                 cb(RenderStage::Rows, *d, h);
             }
-            (st, light_row, surface_row)
+            st
         })
         .collect();
     let mut stats = RowStats::default();
-    let mut light_inscatter: Vec<Vec<[f32; 3]>> = if want_per_light {
-        vec![vec![[0f32; 3]; n]; n_stage]
-    } else {
-        Vec::new()
-    };
-    let mut light_surface_transmittance: Vec<Vec<[f32; 3]>> = if want_surface_t {
-        vec![vec![[1f32; 3]; n]; n_stage]
-    } else {
-        Vec::new()
-    };
-    for (row, (r, light_row, surface_row)) in row_stats.iter().enumerate() {
+    for r in &row_stats {
         stats.merge(r);
-        if want_per_light {
-            for (k, img) in light_inscatter.iter_mut().enumerate() {
-                img[row * w..(row + 1) * w].copy_from_slice(&light_row[k * w..(k + 1) * w]);
-            }
-        }
-        if want_surface_t {
-            for (k, img) in light_surface_transmittance.iter_mut().enumerate() {
-                img[row * w..(row + 1) * w].copy_from_slice(&surface_row[k * w..(k + 1) * w]);
-            }
-        }
     }
     // Passes 1b and 1c, per level: the deferred pixels, interpolated from
     // six samples 2s px apart where that meets the tolerance
@@ -3675,6 +3670,17 @@ struct EdgeStats {
     max_abs: f64,
     max_rel: f64,
     not_converged: u64,
+}
+
+/// Per row `y` of images `w` wide and `h` high, its slice of each image.
+fn rows_of_images(images: &mut [Vec<[f32; 3]>], w: usize, h: usize) -> Vec<Vec<&mut [[f32; 3]]>> {
+    let mut rows: Vec<Vec<&mut [[f32; 3]]>> = (0..h).map(|_| Vec::with_capacity(images.len())).collect();
+    for img in images.iter_mut() {
+        for (row, chunk) in rows.iter_mut().zip(img.chunks_mut(w)) {
+            row.push(chunk);
+        }
+    }
+    rows
 }
 
 /// `acc += wgt · s` for the filtered quantities of a sample.
