@@ -102,10 +102,15 @@ pub struct Stats {
     pub pixels: u64,
     /// View rays that ended on a surface.
     pub rays_hit_surface: u64,
-    /// View rays that crossed no medium: no integral evaluated.
+    /// View rays that crossed no medium: no integral evaluated. Of the
+    /// pixels whose in-scatter was integrated (unlit, interpolated and
+    /// outside-every-volume pixels are counted there instead).
     pub rays_without_medium: u64,
-    /// Pixels not traced: their tile misses every light's illumination volume
-    /// (in-scatter exactly 0) and no requested layer needs the ray.
+    /// Pixels whose in-scatter was not integrated: their tile misses every
+    /// light's illumination volume (in-scatter exactly 0). Their view rays are
+    /// not traced, or, when a requested layer needs them (transmittance,
+    /// depth, surface transmittance; point samples only), followed to their
+    /// surface alone.
     #[serde(default)]
     pub pixels_unlit: u64,
     /// Pixels not traced: interpolated between traced ones where the
