@@ -330,10 +330,15 @@ def _faceted_sphere(centre: tuple[float, float, float], radius: float, rings: in
 
 
 @pytest.mark.parametrize(
-    ("name", "scale", "sphere"),
-    [("two_coloured_spots", 2, False), ("two_coloured_spots", 2, True), ("spot_box_occluder", 2, False)],
+    ("name", "scale", "sphere", "pure"),
+    [
+        ("two_coloured_spots", 2, False, False),
+        ("two_coloured_spots", 2, True, False),
+        ("two_coloured_spots", 2, False, True),
+        ("spot_box_occluder", 2, False, False),
+    ],
 )
-def test_interpolation_with_transmittance_depth_and_per_light_layers(name: str, scale: int, sphere: bool) -> None:
+def test_interpolation_with_transmittance_depth_and_per_light_layers(name: str, scale: int, sphere: bool, pure: bool) -> None:
     """With layers that need every ray (transmittance, depth, each light's
     surface transmittance: the add-on's default set) and per-light
     in-scatter, smooth pixels are still interpolated: their transmittance,
@@ -344,8 +349,14 @@ def test_interpolation_with_transmittance_depth_and_per_light_layers(name: str, 
     estimate and the tolerance, every light's layer within the tolerance of
     that light's value, and the lights sum to the in-scatter. With a faceted
     sphere (288 planes) in both beams, its shadow is bounded by a ball: rays
-    that pass clear of it are still interpolated."""
+    that pass clear of it are still interpolated. With pure colours (a red
+    and a blue gel: channels exactly 0 on every ray of a light, whose own
+    errors are 0 too) pixels are interpolated as well; before, a zero
+    channel failed `error ≤ tolerance · 0` and none was."""
     scene = _scaled(name, scale)
+    if pure:
+        for light, colour in zip(scene["lights"], ([1.0, 0.0, 0.0], [0.0, 0.0, 1.0])):
+            light["color"] = colour
     if sphere:
         scene["meshes"].append(_faceted_sphere((0.0, 0.0, 2.5), 0.8, 12, 12))
     layers = ["inscatter", "transmittance", "depth", "error", "inscatter_per_light", "surface_transmittance_per_light"]
@@ -379,7 +390,7 @@ def test_interpolation_with_transmittance_depth_and_per_light_layers(name: str, 
             light_beyond += int(((np.abs(got_k - ref_k) > (tol + 2e-7) * np.abs(ref_k)).any(-1) & light_changed).sum())
         summed = np.abs(total - got) <= 1e-6 * np.abs(got) + 1e-30
         print(
-            f"{name} ×{scale}{' + sphere' if sphere else ''}, tolerance {tol}: {interpolated} interpolated, "
+            f"{name} ×{scale}{' + sphere' if sphere else ''}{' pure' if pure else ''}, tolerance {tol}: {interpolated} interpolated, "
             f"{changed.sum()} changed, {outside.sum()} outside the estimate, {beyond.sum()} beyond the tolerance, "
             f"{light_beyond} per-light pixels beyond it"
         )

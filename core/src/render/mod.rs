@@ -2269,6 +2269,44 @@ fn render_channels<const C: usize, const K: usize>(
         // Whether a filled pixel lists per-light values (in-scatter, then
         // surface transmittance) for the write-back.
         let listed = want_per_light || want_surface_t;
+        // Channels that are exactly 0 on every ray, per light (in per-light
+        // layer order: points, then windows) and for the sum: the light's
+        // colour is 0 there, and the integrand is a product with it. Their
+        // samples' own errors are 0 too, so the interpolation does not fail
+        // on `error > tolerance · 0` (the samples store their largest
+        // channel's error; a pure red gel was never interpolated, and per-light
+        // layers failed for every light with a zero channel). RGB only: a
+        // spectral render's conversion mixes the channels.
+        let light_zero: Vec<[bool; 3]> = stage_lights
+            .points
+            .iter()
+            .map(|p| p.light.intensity)
+            .chain(stage_lights.windows.iter().map(|w| w.light.irradiance))
+            .map(|v| std::array::from_fn(|c| C == 3 && v[c] == 0.0))
+            .collect();
+        // The sum's zero channels at a sample follow from the lights its ray
+        // crosses, read from its topology code (a light's bits are all 0
+        // when the ray misses its volume): a channel is 0 when every crossed
+        // light's colour is 0 there.
+        let light_bits: Vec<u64> = {
+            let widths = stage_lights
+                .points
+                .iter()
+                .map(|p| 4 * p.light.kinks().as_slice().len())
+                .chain(stage_lights.windows.iter().map(|_| 4));
+            let mut base = 0usize;
+            widths
+                .map(|n| {
+                    let bits = if base + n <= 62 { ((1u64 << n) - 1) << base } else { 0 };
+                    base += n;
+                    bits
+                })
+                .collect()
+        };
+        let zero_for_code = |code: u64| -> [bool; 3] {
+            std::array::from_fn(|c| light_bits.iter().zip(&light_zero).all(|(bits, zero)| code & bits == 0 || zero[c]))
+        };
+        let mask = |e: [f64; 3], zero: &[bool; 3]| -> [f64; 3] { std::array::from_fn(|c| if zero[c] { 0.0 } else { e[c] }) };
         // One deferred pixel, given its six samples (in-scatter, error,
         // surface, code) and their pixel indices (for the per-light images),
         // and what it adds to the row's statistics.
@@ -2309,6 +2347,7 @@ fn render_channels<const C: usize, const K: usize>(
                         extra.lights[k] = [0.0; 3];
                         continue;
                     }
+                    let errs = errs.map(|e| mask(e, light_zero.get(k).unwrap_or(&[false; 3])));
                     let (v, e) = smooth::interpolate_values(&vals, &errs, tolerance)?;
                     extra.lights[k] = v.map(|x| x as f32);
                     worst = worst.max(e.iter().fold(0f32, |m, x| m.max(*x as f32)));
@@ -2368,7 +2407,9 @@ fn render_channels<const C: usize, const K: usize>(
             }
         };
         let read = |l: &[[f32; 3]], e: &[f32], id: &[u32], code: &[u64], i: usize| -> smooth::StencilSample {
-            (code[i] & smooth::PRESENT != 0).then(|| (l[i], [e[i]; 3], (group_of(id[i]), code[i])))
+            let zero = zero_for_code(code[i]);
+            let own: [f32; 3] = std::array::from_fn(|c| if zero[c] { 0.0 } else { e[i] });
+            (code[i] & smooth::PRESENT != 0).then(|| (l[i], own, (group_of(id[i]), code[i])))
         };
         // The ray-dependent layers and per-light in-scatter of the filled
         // pixels, written after each pass (pixel index, extra).
