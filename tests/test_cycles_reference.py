@@ -338,7 +338,9 @@ def _faceted_sphere(centre: tuple[float, float, float], radius: float, rings: in
         ("spot_box_occluder", 2, False, False),
     ],
 )
-def test_interpolation_with_transmittance_depth_and_per_light_layers(name: str, scale: int, sphere: bool, pure: bool) -> None:
+def test_interpolation_with_transmittance_depth_and_per_light_layers(
+    name: str, scale: int, sphere: bool, pure: bool
+) -> None:
     """With layers that need every ray (transmittance, depth, each light's
     surface transmittance: the add-on's default set) and per-light
     in-scatter, smooth pixels are still interpolated: their transmittance,
@@ -355,7 +357,7 @@ def test_interpolation_with_transmittance_depth_and_per_light_layers(name: str, 
     channel failed `error ≤ tolerance · 0` and none was."""
     scene = _scaled(name, scale)
     if pure:
-        for light, colour in zip(scene["lights"], ([1.0, 0.0, 0.0], [0.0, 0.0, 1.0])):
+        for light, colour in zip(scene["lights"], ([1.0, 0.0, 0.0], [0.0, 0.0, 1.0]), strict=True):
             light["color"] = colour
     if sphere:
         scene["meshes"].append(_faceted_sphere((0.0, 0.0, 2.5), 0.8, 12, 12))
@@ -390,7 +392,8 @@ def test_interpolation_with_transmittance_depth_and_per_light_layers(name: str, 
             light_beyond += int(((np.abs(got_k - ref_k) > (tol + 2e-7) * np.abs(ref_k)).any(-1) & light_changed).sum())
         summed = np.abs(total - got) <= 1e-6 * np.abs(got) + 1e-30
         print(
-            f"{name} ×{scale}{' + sphere' if sphere else ''}{' pure' if pure else ''}, tolerance {tol}: {interpolated} interpolated, "
+            f"{name} ×{scale}{' + sphere' if sphere else ''}{' pure' if pure else ''}, tolerance {tol}: "
+            f"{interpolated} interpolated, "
             f"{changed.sum()} changed, {outside.sum()} outside the estimate, {beyond.sum()} beyond the tolerance, "
             f"{light_beyond} per-light pixels beyond it"
         )
