@@ -1698,6 +1698,7 @@ fn topology_code_of_a_traced_ray_equals_the_geometric_one() {
     rays.extend(random_rays(&mut rng, 1500, pb, ab));
     let mut buf = Vec::new();
     let mut codes = std::collections::BTreeSet::new();
+    let masks = lights.topology_masks();
     for (o, d) in rays {
         let s_max = bvh.closest_hit(o, d, 0.0, f64::INFINITY).map_or(f64::INFINITY, |h| h.t);
         let ray = ViewRay { origin: o, dir: d, s_max };
@@ -1710,8 +1711,17 @@ fn topology_code_of_a_traced_ray_equals_the_geometric_one() {
         let geometric = lights.topology(&ray, &mut buf, &|_| false);
         assert_eq!(traced, geometric, "o = {o}, d = {d}, s_max = {s_max}");
         codes.insert(geometric);
+        // Each light's own bits are set exactly when the ray crosses its cone.
+        for (k, (p, mask)) in lights.points.iter().zip(&masks).enumerate() {
+            let l = &p.light;
+            tyndall_core::light::ray_cone_intervals(o, d, 0.0, s_max, l.position, l.frame.axis, l.cos_reach, &mut buf);
+            assert_eq!(geometric & mask != 0, !buf.is_empty(), "light {k}: o = {o}, d = {d}");
+        }
     }
     assert!(codes.len() >= 8, "only {} distinct codes", codes.len());
+    // The lights' masks are disjoint and cover the code's cone bits.
+    assert_eq!(masks[0] & masks[1], 0);
+    assert_eq!((masks[0] | masks[1]).count_ones() as usize, lights.topology_bits());
     assert!(lights.topology_bits() <= 62);
 }
 

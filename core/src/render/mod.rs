@@ -2288,21 +2288,7 @@ fn render_channels<const C: usize, const K: usize>(
         // crosses, read from its topology code (a light's bits are all 0
         // when the ray misses its volume): a channel is 0 when every crossed
         // light's colour is 0 there.
-        let light_bits: Vec<u64> = {
-            let widths = stage_lights
-                .points
-                .iter()
-                .map(|p| 4 * p.light.kinks().as_slice().len())
-                .chain(stage_lights.windows.iter().map(|_| 4));
-            let mut base = 0usize;
-            widths
-                .map(|n| {
-                    let bits = if base + n <= 62 { ((1u64 << n) - 1) << base } else { 0 };
-                    base += n;
-                    bits
-                })
-                .collect()
-        };
+        let light_bits = stage_lights.topology_masks();
         let zero_for_code = |code: u64| -> [bool; 3] {
             std::array::from_fn(|c| light_bits.iter().zip(&light_zero).all(|(bits, zero)| code & bits == 0 || zero[c]))
         };

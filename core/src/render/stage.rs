@@ -725,6 +725,26 @@ impl<const C: usize> StageLights<C> {
         4 * (cones + self.windows.len())
     }
 
+    /// Per light ([`StageLights::names`] order), the bits of
+    /// [`StageLights::topology`] that are its own (its cones', or its
+    /// prism's): all 0 on a ray that misses its volume. 0 for a light whose
+    /// bits would reach bit 62 (the code is not used then).
+    pub fn topology_masks(&self) -> Vec<u64> {
+        let widths = self
+            .points
+            .iter()
+            .map(|p| 4 * p.light.kinks().as_slice().len())
+            .chain(self.windows.iter().map(|_| 4));
+        let mut base = 0usize;
+        widths
+            .map(|n| {
+                let bits = if base + n <= 62 { ((1u64 << n) - 1) << base } else { 0 };
+                base += n;
+                bits
+            })
+            .collect()
+    }
+
     /// The ray's topology code (see [`super::smooth`]): for every cone on
     /// which a point light's distribution has a kink or ends, and every
     /// window prism, 4 bits: how many intervals of `[0, s_max]` lie inside
