@@ -763,11 +763,6 @@ mod tests {
         assert!(interpolate(&st, (1, 1), 0.1).is_none(), "a sample that may not be read");
     }
 
-    /// A tilted box over a floor and a slanted card, under a light: every
-    /// ray that a brute force finds shadowed somewhere (segments from 4000
-    /// points along it to the light, against the triangles) is one the
-    /// pyramids say may be, and most unshadowed rays in the light's reach
-    /// are told apart from them.
     /// A mesh that is seen and casts shadows.
     fn mesh(name: &str, positions: Vec<[f64; 3]>, triangles: Vec<[u32; 3]>, transform: crate::scene::Transform) -> Mesh {
         Mesh {
@@ -824,6 +819,11 @@ mod tests {
         }] += 1;
     }
 
+    /// A tilted box over a floor and a slanted card, under a light: every
+    /// ray that a brute force finds shadowed somewhere (segments from 4000
+    /// points along it to the light, against the triangles) is one the
+    /// pyramids say may be, and most unshadowed rays in the light's reach
+    /// are told apart from them.
     #[test]
     fn shadow_pyramids_hold_every_shadowed_ray() {
         use crate::geometry::bvh::Bvh;
