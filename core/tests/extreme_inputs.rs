@@ -817,3 +817,48 @@ fn overlapping_media_with_a_height_fog_stay_finite_looking_down() {
     let l = img.inscatter[7][0] as f64;
     assert!((l / want - 1.0).abs() < 1e-3, "centre pixel L = {l}, saturated value {want}");
 }
+
+/// An eye far below a height fog's reference height (its density overflows
+/// f64 there) with a second medium on the ray, and a fog that does not dim
+/// the green and blue channels: in red the fog is opaque at the eye and its
+/// saturated value is the whole answer; in green and blue the fog is absent,
+/// so the image there is the haze's alone, as if the fog were not in the
+/// scene. (Tracing once returned the fog's closed form in every channel and
+/// dropped the haze.)
+#[test]
+fn an_overflowing_fog_that_leaves_channels_clear_keeps_the_other_media_in_them() {
+    let scene_with = |media: &str| {
+        format!(
+            r#"{{"version":1,
+        "camera":{{"type":"perspective","position":[0,0,-1000],"orientation":{{"look_at":{{"target":[0,100,-1000]}}}},"resolution":[5,3]}},
+        "lights":[{{"type":"sun","direction_to_sun":[0,0.3,1]}},{{"type":"ambient"}}],
+        "media":[{media}],
+        "output":{{"layers":["inscatter","transmittance","error"],"pixel_filter":{{"type":"none"}}}}}}"#
+        )
+    };
+    let haze = r#"{"type":"homogeneous","scattering":0.001,"absorption":0.0005}"#;
+    let fog = r#"{"type":"height_fog","scale_height_m":1,"mie":{"scattering":[0.01,0,0]}}"#;
+    let both = scene_with(&format!("{fog},{haze}"));
+    check_images("eye in overflowing red-only fog + haze", &both);
+    let (img, _) = render(&Scene::from_json_str(&both, "both").unwrap(), None).unwrap();
+    let (alone, _) = render(&Scene::from_json_str(&scene_with(haze), "haze").unwrap(), None).unwrap();
+    let saturated = Phase::Cs(0.76).eval(0.3 / 1.09f64.sqrt()) + 1.0;
+    for i in 0..img.inscatter.len() {
+        for c in 1..3 {
+            let (l, want) = (img.inscatter[i][c] as f64, alone.inscatter[i][c] as f64);
+            assert!(
+                want > 0.0 && (l / want - 1.0).abs() < 1e-6,
+                "pixel {i} channel {c}: L = {l}, the haze alone {want}"
+            );
+            let (t, t_want) = (img.transmittance[i][c], alone.transmittance[i][c]);
+            assert_eq!(t, t_want, "pixel {i} channel {c}: T");
+        }
+        assert_eq!(img.transmittance[i][0], 0.0, "pixel {i}: the fog is opaque in red");
+    }
+    // The centre pixel looks along +y: the sun is at μ = 0.3/√1.09 from the view direction.
+    let l = img.inscatter[7][0] as f64;
+    assert!(
+        (l / saturated - 1.0).abs() < 1e-3,
+        "centre pixel L = {l}, saturated value {saturated}"
+    );
+}

@@ -321,13 +321,14 @@ impl<const C: usize> PreparedMedium<C> {
         }
     }
 
-    /// Whether the density at `p` is beyond f64 (only a height fog far below
-    /// its reference height can do that); then the closed form, which works in
-    /// log space, is the only safe evaluation.
-    pub fn density_overflows_at(&self, p: DVec3) -> bool {
+    /// The channels in which the density at `p` is beyond f64 (only a height
+    /// fog far below its reference height can do that, and only where its
+    /// extinction is not 0); there the closed form, which works in log space,
+    /// is the only safe evaluation.
+    pub fn density_overflows_at(&self, p: DVec3) -> [bool; C] {
         match self {
-            PreparedMedium::HeightFog(m) => -(p.z - m.reference_height) / m.scale_height > 700.0 && m.extinction.iter().any(|b| *b > 0.0),
-            _ => false,
+            PreparedMedium::HeightFog(m) if -(p.z - m.reference_height) / m.scale_height > 700.0 => m.extinction.map(|b| b > 0.0),
+            _ => [false; C],
         }
     }
 

@@ -1314,10 +1314,32 @@ fn integrate_media<const C: usize>(
     tolerance: f64,
 ) -> (RayResult<C>, bool) {
     // An eye inside a medium whose density overflows f64 (a height fog far
-    // below its reference height): the view ray is opaque at once and that
-    // medium's own closed form (saturated: L = J·σ_s/σ_t, T = 0) is the answer.
-    if let Some(m) = media.iter().find(|m| m.density_overflows_at(ray.origin)) {
-        return (m.closed_form(ray, lights), true);
+    // below its reference height): in every channel that medium dims, the
+    // view ray is opaque at once and its own closed form (saturated:
+    // L = J·σ_s/σ_t, T = 0) is the answer. A channel it does not dim
+    // (extinction 0 there, so no scattering either) sees the other media
+    // alone, as if it were not on the ray.
+    if let Some((i, opaque)) = media
+        .iter()
+        .map(|m| m.density_overflows_at(ray.origin))
+        .enumerate()
+        .find(|(_, o)| o.contains(&true))
+    {
+        let mut out = media[i].closed_form(ray, lights);
+        let clear: Vec<usize> = (0..C).filter(|&c| !opaque[c]).collect();
+        if clear.is_empty() || media.len() == 1 {
+            return (out, true);
+        }
+        let others: Vec<PreparedMedium<C>> = media.iter().enumerate().filter(|(j, _)| *j != i).map(|(_, m)| m.clone()).collect();
+        let (rest, converged) = integrate_media(ray, &others, lights, tolerance);
+        for c in clear {
+            out.inscatter[c] = rest.inscatter[c];
+            out.transmittance[c] = rest.transmittance[c];
+            out.sun_transmittance[c] = rest.sun_transmittance[c];
+            out.error[c] = rest.error[c];
+        }
+        out.rel_bound = out.rel_bound.max(rest.rel_bound);
+        return (out, converged);
     }
     let total_tau = |s: f64| {
         let mut t = [0.0; C];
