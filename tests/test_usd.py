@@ -884,29 +884,144 @@ def test_blender_usd_scene_usd_blender_round_trip(tmp_path: Path) -> None:
         assert m["triangles"] == v["triangles"]
 
 
-def test_point_instancer_prototypes_are_not_lights_of_their_own(tmp_path: Path) -> None:
-    """A PointInstancer's prototype lamp was converted where it stands (a light that
-    the stage does not draw) while its instances were dropped: now the instancer and
-    everything under it is left out, and the note counts what that drops."""
-    stage = _stage(tmp_path)
-    haze = stage.DefinePrim("/World/Haze")
-    haze.CreateAttribute("tyndall:medium:type", Sdf.ValueTypeNames.String).Set("homogeneous")
-    haze.CreateAttribute("tyndall:medium:scattering", Sdf.ValueTypeNames.Double).Set(0.03)
-    UsdLux.SphereLight.Define(stage, "/World/Key")
-    inst = UsdGeom.PointInstancer.Define(stage, "/World/PI")
-    lamp = UsdLux.SphereLight.Define(stage, "/World/PI/Protos/Lamp")
-    inst.CreatePrototypesRel().SetTargets([lamp.GetPath()])
-    inst.CreatePositionsAttr([Gf.Vec3f(-2, 0, 4), Gf.Vec3f(0, 0, 4), Gf.Vec3f(2, 0, 4)])
-    inst.CreateProtoIndicesAttr([0, 0, 0])
-    conv = convert_stage(stage)
-    assert [light["name"] for light in conv.scene["lights"]] == ["Key"]
-    assert conv.skipped == [
-        {
-            "prim": "/World/PI",
-            "reason": "PointInstancer prims are not supported: its 3 instances are left out (1 lights and 0 meshes "
-            "among its prototypes, which are drawn only where it places them)",
+def _instancer_rig(stage: Usd.Stage, explicit: bool) -> None:
+    """Three fixtures (a spot lamp on a yoke, and a box) under a turned Xform, placed by a
+    PointInstancer (the middle one hidden by invisibleIds), or, with ``explicit``, as
+    ordinary prims at the instances' places (positions, orientations, scales, composed as
+    UsdGeom.PointInstancer documents: scale, then orientation, then translation)."""
+    rig = UsdGeom.Xform.Define(stage, "/World/Rig")
+    _xform(rig.GetPrim(), (0.5, 1.0, 0.25), (0, 0, 30))
+    positions = [Gf.Vec3f(-2, 0, 4), Gf.Vec3f(0, 0, 4), Gf.Vec3f(2, 0.5, 4.5)]
+    orientations = [Gf.Quath(1, 0, 0, 0), Gf.Quath(1, 0, 0, 0), Gf.Quath(0, 1, 0, 0)]
+    scales = [Gf.Vec3f(1, 1, 1), Gf.Vec3f(1, 1, 1), Gf.Vec3f(2, 2, 2)]
+
+    def fixture(root: str) -> None:
+        yoke = UsdGeom.Xform.Define(stage, root)
+        _xform(yoke.GetPrim(), (0, 0, 0.5), (0, 0, 0))
+        head = UsdGeom.Xform.Define(stage, root + "/Head")
+        _xform(head.GetPrim(), (0, 0.2, 0), (-20, 0, 0))
+        lamp = UsdLux.SphereLight.Define(stage, root + "/Head/Lamp")
+        lamp.CreateIntensityAttr(200.0)
+        lamp.CreateRadiusAttr(0.05)
+        shaping = UsdLux.ShapingAPI.Apply(lamp.GetPrim())
+        shaping.CreateShapingConeAngleAttr(15.0)
+        shaping.CreateShapingConeSoftnessAttr(0.2)
+        box = UsdGeom.Mesh.Define(stage, root + "/Flag")
+        box.CreatePointsAttr([(-0.2, -0.2, -0.6), (0.2, -0.2, -0.6), (0.2, 0.2, -0.6), (-0.2, 0.2, -0.6)])
+        box.CreateFaceVertexCountsAttr([4])
+        box.CreateFaceVertexIndicesAttr([0, 1, 2, 3])
+        _xform(box.GetPrim(), (0.1, 0, 0), (0, 0, 0), 1.5)
+
+    if not explicit:
+        inst = UsdGeom.PointInstancer.Define(stage, "/World/Rig/Truss")
+        fixture("/World/Rig/Truss/Protos/Fixture")
+        inst.CreatePrototypesRel().SetTargets([Sdf.Path("/World/Rig/Truss/Protos/Fixture")])
+        inst.CreateProtoIndicesAttr([0, 0, 0])
+        inst.CreatePositionsAttr(positions)
+        inst.CreateOrientationsAttr(orientations)
+        inst.CreateScalesAttr(scales)
+        inst.CreateInvisibleIdsAttr([1])
+        return
+    for i in (0, 2):
+        place = UsdGeom.Xform.Define(stage, f"/World/Rig/Place{i}")
+        q = orientations[i]
+        rot = Gf.Rotation(Gf.Quatd(q.GetReal(), Gf.Vec3d(q.GetImaginary())))
+        m = Gf.Matrix4d().SetScale(Gf.Vec3d(scales[i])) * Gf.Matrix4d().SetRotate(rot)
+        m = m * Gf.Matrix4d().SetTranslate(Gf.Vec3d(positions[i]))
+        place.AddTransformOp().Set(m)
+        fixture(f"/World/Rig/Place{i}/Fixture")
+
+
+def test_a_point_instancers_lamps_and_meshes_stand_where_it_places_them(tmp_path: Path) -> None:
+    """Each drawn instance of a PointInstancer gives its prototype's lamps and meshes, at the
+    same places as ordinary prims at the instances' transforms would (the instancer under a
+    turned Xform, the prototype with its own transform, the lamp two levels below it, one
+    instance turned and scaled, one hidden)."""
+    haze = '{"type": "homogeneous", "scattering": 0.03}'
+    convs = []
+    for explicit in (False, True):
+        stage = _stage(tmp_path, name=f"rig_{explicit}.usda")
+        h = stage.DefinePrim("/World/Haze")
+        h.CreateAttribute("tyndall:medium:type", Sdf.ValueTypeNames.String).Set("homogeneous")
+        h.CreateAttribute("tyndall:medium:scattering", Sdf.ValueTypeNames.Double).Set(0.03)
+        _instancer_rig(stage, explicit)
+        convs.append(convert_stage(stage))
+    inst, ref = convs
+    assert inst.skipped == [] and ref.skipped == [], (inst.skipped, ref.skipped)
+    assert [light["name"] for light in inst.scene["lights"]] == ["Lamp_0", "Lamp_2"]
+    assert [m["name"] for m in inst.scene["meshes"]] == ["Flag_0", "Flag_2"]
+    assert inst.light_prims == ["/World/Rig/Truss/Protos/Fixture/Head/Lamp"] * 2
+    assert any("2 of 3 instances drawn: 2 lights and 2 meshes placed" in n for n in inst.notes), inst.notes
+    for a, b in zip(inst.scene["lights"], ref.scene["lights"], strict=True):
+        assert a["type"] == b["type"] == "spot"
+        _same_tree({**a, "name": ""}, {**b, "name": ""}, 1e-6, a["name"])
+    for a, b in zip(inst.scene["meshes"], ref.scene["meshes"], strict=True):
+        _same_tree({**a, "name": ""}, {**b, "name": ""}, 1e-6, a["name"])
+    # The turned and doubled instance: its lamp sits at (0, 0.2·2, 0.5·2) from the place,
+    # the place turned 180° about x then by the rig's 30° about z and moved by the rig.
+    lamp = np.array([0.0, 0.2, 0.5]) * 2.0
+    c, s = -1.0, 0.0
+    lamp = np.array([lamp[0], c * lamp[1] - s * lamp[2], s * lamp[1] + c * lamp[2]]) + [2, 0.5, 4.5]
+    c, s = math.cos(math.pi / 6), math.sin(math.pi / 6)
+    lamp = np.array([c * lamp[0] - s * lamp[1], s * lamp[0] + c * lamp[1], lamp[2]]) + [0.5, 1.0, 0.25]
+    assert _close(inst.scene["lights"][1]["position"], lamp.tolist(), 1e-6), inst.scene["lights"][1]["position"]
+    # The lamp's radius follows the instance's scale, as a prim's scale.
+    assert math.isclose(inst.scene["lights"][1]["radius_m"], 0.1, rel_tol=1e-6)
+    # Both render the same image.
+    scenes = []
+    for conv in convs:
+        scene = dict(conv.scene)
+        scene["camera"] = {
+            "type": "perspective",
+            "position": [0, -12, 3],
+            "orientation": {"look_at": {"target": [0.5, 1, 3]}},
+            "resolution": [32, 18],
         }
-    ]
+        scene["media"] = [json.loads(haze)]
+        scene["output"] = {"layers": ["inscatter"], "pixel_filter": {"type": "none"}, "tolerance": 1e-4}
+        scenes.append(scene)
+    a, b = (tyndall.render(s_)[0]["inscatter"] for s_ in scenes)
+    assert np.max(a) > 0.0
+    np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-7 * float(np.max(a)))
+
+
+def test_a_point_instancer_with_bad_indices_or_sizes_is_named(tmp_path: Path) -> None:
+    for attribute in ("protoIndices", "positions"):
+        stage = _stage(tmp_path, name=f"bad_{attribute}.usda")
+        inst = UsdGeom.PointInstancer.Define(stage, "/World/PI")
+        lamp = UsdLux.SphereLight.Define(stage, "/World/PI/Protos/Lamp")
+        inst.CreatePrototypesRel().SetTargets([lamp.GetPath()])
+        if attribute == "protoIndices":
+            inst.CreatePositionsAttr([Gf.Vec3f(0, 0, 4), Gf.Vec3f(1, 0, 4)])
+            inst.CreateProtoIndicesAttr([0, 1])
+            want = "index 1 is out of range for 1 prototypes"
+        else:
+            inst.CreatePositionsAttr([Gf.Vec3f(0, 0, 4)])
+            inst.CreateProtoIndicesAttr([0, 0])
+            want = "1 values for 2 instances"
+        with pytest.raises(UsdSceneError) as e:
+            convert_stage(stage)
+        assert e.value.prim == "/World/PI" and e.value.attribute == attribute, str(e.value)
+        assert want in str(e.value)
+
+
+def test_what_a_point_instancers_prototype_cannot_hold_is_listed(tmp_path: Path) -> None:
+    """A nested instancer, a camera or a dome light inside a prototype is listed once, not
+    once per instance, and the prototype's lamp is still placed at every instance."""
+    stage = _stage(tmp_path)
+    inst = UsdGeom.PointInstancer.Define(stage, "/World/PI")
+    UsdLux.SphereLight.Define(stage, "/World/PI/Protos/P/Lamp")
+    UsdLux.DomeLight.Define(stage, "/World/PI/Protos/P/Dome")
+    UsdGeom.PointInstancer.Define(stage, "/World/PI/Protos/P/Inner")
+    UsdLux.SphereLight.Define(stage, "/World/PI/Protos/P/Inner/Deep")
+    inst.CreatePrototypesRel().SetTargets([Sdf.Path("/World/PI/Protos/P")])
+    inst.CreatePositionsAttr([Gf.Vec3f(-1, 0, 4), Gf.Vec3f(1, 0, 4)])
+    inst.CreateProtoIndicesAttr([0, 0])
+    conv = convert_stage(stage)
+    assert [light["name"] for light in conv.scene["lights"]] == ["Lamp_0", "Lamp_1"]
+    assert [light["position"] for light in conv.scene["lights"]] == [[-1.0, 0.0, 4.0], [1.0, 0.0, 4.0]]
+    assert [d["prim"] for d in conv.skipped] == ["/World/PI/Protos/P/Dome", "/World/PI/Protos/P/Inner"]
+    assert "PointInstancer /World/PI is not supported" in conv.skipped[1]["reason"]
 
 
 @pytest.mark.parametrize("mpu", [1e-300, 1e-10, 2e9, 1e300])

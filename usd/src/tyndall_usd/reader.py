@@ -105,7 +105,8 @@ class Conversion:
     notes: list[str] = field(default_factory=list)
     #: Sky to render, when the stage asks for one (``tyndall:sky:enabled``).
     sky: SkySettings | None = None
-    #: Prim path of each converted light, in ``scene["lights"]`` order.
+    #: Prim path of each converted light, in ``scene["lights"]`` order (for a PointInstancer's
+    #: instances, the prototype's lamp, once per instance).
     light_prims: list[str] = field(default_factory=list)
 
 
@@ -228,6 +229,9 @@ class _Converter:
         self.xf_cache = UsdGeom.XformCache(time)
         self.bbox_cache = UsdGeom.BBoxCache(time, [UsdGeom.Tokens.default_, UsdGeom.Tokens.render])
         self.from_blender = "Blender" in (stage.GetRootLayer().documentation or "")
+        #: Stage-space local → world matrix of the PointInstancer instance being converted
+        #: (``None`` outside :meth:`point_instancer`): it replaces the prim's own.
+        self.instance_matrix: Gf.Matrix4d | None = None
         if up == UsdGeom.Tokens.y:
             self.notes.append("Y-up stage: rotated +90° about X into Tyndall's Z-up world (as Blender imports it)")
         if mpu != 1.0:
@@ -240,6 +244,8 @@ class _Converter:
 
     def world_matrix(self, prim: Usd.Prim) -> Gf.Matrix4d:
         """Local → Tyndall world (row-vector convention), checked to be finite and invertible."""
+        if self.instance_matrix is not None:
+            return self.instance_matrix * self.to_world
         m = self.xf_cache.GetLocalToWorldTransform(prim) * self.to_world
         if _geom.is_finite_matrix(m) and abs(_geom.det3(m)) > 1e-300 and m.GetColumn(3) == Gf.Vec4d(0, 0, 0, 1):
             return m
@@ -756,6 +762,148 @@ class _Converter:
 
     # -- the whole stage
 
+    def drawn(self, prim: Usd.Prim, type_name: str) -> bool:
+        """False, and the prim listed as skipped, for an invisible prim or a guide or proxy."""
+        img = UsdGeom.Imageable(prim)
+        if img and img.ComputeVisibility(self.time) == UsdGeom.Tokens.invisible:
+            self.skip(prim, f"invisible {type_name}")
+            return False
+        if img and img.ComputePurpose() in (UsdGeom.Tokens.guide, UsdGeom.Tokens.proxy):
+            self.skip(prim, f"{type_name} with purpose {img.ComputePurpose()}")
+            return False
+        return True
+
+    def light_or_mesh(self, prim: Usd.Prim, type_name: str) -> tuple[str, dict[str, Any] | None]:
+        """``("light", …)``, ``("mesh", …)`` (``None`` where the prim turned out unusable and
+        is listed as skipped), or ``("", None)`` for a prim that is neither (listed too, unless
+        it only structures the stage)."""
+        if type_name == "SphereLight":
+            return "light", self.sphere_light(prim)
+        if type_name == "DistantLight":
+            return "light", self.distant_light(prim)
+        if type_name in ("DomeLight", "DomeLight_1"):
+            return "light", self.dome_light(prim)
+        if type_name == "Mesh":
+            return "mesh", self.mesh(prim)
+        if type_name in _UNSUPPORTED_LIGHTS:
+            self.skip(prim, f"{type_name} is not supported (Tyndall has point, spot and sun lights)")
+        elif type_name == "Volume":
+            self.skip(prim, "Volume without tyndall:medium attributes (OpenVDB grids are not read)")
+        elif type_name not in _STRUCTURAL and (UsdGeom.Imageable(prim) or prim.HasAPI(UsdLux.LightAPI)):
+            self.skip(prim, f"{type_name} prims are not supported")
+        return "", None
+
+    def point_instancer(
+        self, prim: Usd.Prim, pred: Any
+    ) -> tuple[list[dict[str, Any]], list[dict[str, Any]], list[str]]:
+        """The lights and meshes a PointInstancer places: every lamp and mesh under each
+        prototype, once per instance that ``invisibleIds`` and ``inactiveIds`` leave drawn,
+        at ``(its transform below the prototype) · (the instance's transform, which holds the
+        prototype's own) · (the instancer's local → world)`` — UsdGeom.PointInstancer's
+        ``ComputeInstanceTransformsAtTime``. Instance ``i``'s copies are named
+        ``<name>_<i>``; the light prims listed are the prototypes' (once per instance)."""
+        path = str(prim.GetPath())
+        inst = UsdGeom.PointInstancer(prim)
+        protos = inst.GetPrototypesRel().GetTargets()
+        indices = [int(k) for k in (inst.GetProtoIndicesAttr().Get(self.time) or [])]
+        lights: list[dict[str, Any]] = []
+        meshes: list[dict[str, Any]] = []
+        light_prims: list[str] = []
+        if not indices:
+            self.skip(prim, "PointInstancer with no instances (protoIndices is empty)")
+            return lights, meshes, light_prims
+        bad = next((k for k in indices if not 0 <= k < len(protos)), None)
+        if bad is not None:
+            raise UsdSceneError(path, "protoIndices", f"index {bad} is out of range for {len(protos)} prototypes")
+        xforms = inst.ComputeInstanceTransformsAtTime(
+            self.time, self.time, UsdGeom.PointInstancer.IncludeProtoXform, UsdGeom.PointInstancer.IgnoreMask
+        )
+        if len(xforms) != len(indices):
+            sizes = {
+                name: len(attr.Get(self.time) or [])
+                for name, attr in (
+                    ("positions", inst.GetPositionsAttr()),
+                    ("orientations", inst.GetOrientationsAttr()),
+                    ("scales", inst.GetScalesAttr()),
+                )
+                if attr.HasAuthoredValue()
+            }
+            wrong = next((n for n, k in sizes.items() if k != len(indices)), "positions")
+            raise UsdSceneError(
+                path, wrong, f"{sizes.get(wrong, 0)} values for {len(indices)} instances (protoIndices)"
+            )
+        mask = list(inst.ComputeMaskAtTime(self.time)) or [True] * len(indices)
+        base = self.xf_cache.GetLocalToWorldTransform(prim)
+        # What each prototype holds, with its transform below the prototype's root.
+        contents: dict[int, list[tuple[Usd.Prim, str, Gf.Matrix4d]]] = {}
+        for k in sorted(set(indices)):
+            root = self.stage.GetPrimAtPath(protos[k])
+            if not root:
+                raise UsdSceneError(path, "prototypes", f"target {protos[k]} is not a prim on the stage")
+            below_root = self.xf_cache.GetLocalToWorldTransform(root).GetInverse()
+            held: list[tuple[Usd.Prim, str, Gf.Matrix4d]] = []
+            nested: list[Sdf.Path] = []
+            for q in Usd.PrimRange(root, pred):
+                type_name = str(q.GetTypeName())
+                if any(q.GetPath().HasPrefix(n) for n in nested):
+                    continue
+                if type_name == "PointInstancer" or _authored(q, NS + "medium:type") or type_name == "Camera":
+                    nested.append(q.GetPath())
+                    what = "a medium" if _authored(q, NS + "medium:type") else f"a {type_name}"
+                    self.skip(q, f"{what} inside the prototype of the PointInstancer {path} is not supported")
+                    continue
+                if type_name in ("DomeLight", "DomeLight_1"):
+                    self.skip(q, f"a DomeLight inside the prototype of the PointInstancer {path} is not supported")
+                    continue
+                if type_name in _STRUCTURAL or not self.drawn(q, type_name):
+                    continue
+                rel = self.xf_cache.GetLocalToWorldTransform(q) * below_root
+                held.append((q, type_name, rel))
+            contents[k] = held
+        converted: dict[Sdf.Path, dict[str, Any] | None] = {}
+        try:
+            for i, (k, drawn) in enumerate(zip(indices, mask, strict=True)):
+                if not drawn:
+                    continue
+                for q, type_name, rel in contents[k]:
+                    m = rel * xforms[i] * base
+                    self.instance_matrix = m
+                    if not (
+                        _geom.is_finite_matrix(m * self.to_world)
+                        and abs(_geom.det3(m * self.to_world)) > 1e-300
+                        and m.GetColumn(3) == Gf.Vec4d(0, 0, 0, 1)
+                    ):
+                        raise UsdSceneError(
+                            path, "scales", f"instance {i} has a non-invertible or non-finite transform"
+                        )
+                    if type_name == "Mesh" and q.GetPath() in converted:
+                        # The same points and triangles: only the transform differs.
+                        first = converted[q.GetPath()]
+                        if first is not None:
+                            mesh = {**first, "transform": {"matrix": _geom.to_row_major(m * self.to_world)}}
+                            mesh["name"] = f"{q.GetName()}_{i}"
+                            meshes.append(mesh)
+                        continue
+                    kind, obj = self.light_or_mesh(q, type_name)
+                    if kind == "mesh":
+                        converted[q.GetPath()] = obj
+                    if obj is None:
+                        continue
+                    obj["name"] = f"{obj['name']}_{i}"
+                    if kind == "mesh":
+                        meshes.append(obj)
+                    else:
+                        lights.append(obj)
+                        light_prims.append(str(q.GetPath()))
+        finally:
+            self.instance_matrix = None
+        n_drawn = sum(mask)
+        self.notes.append(
+            f"{path}: PointInstancer with {n_drawn} of {len(indices)} instances drawn: "
+            f"{len(lights)} lights and {len(meshes)} meshes placed"
+        )
+        return lights, meshes, light_prims
+
     def run(self) -> Conversion:
         pred = Usd.TraverseInstanceProxies(Usd.PrimDefaultPredicate)
         prims = list(Usd.PrimRange(self.stage.GetPseudoRoot(), pred))[1:]
@@ -770,20 +918,14 @@ class _Converter:
         for prim in prims:
             type_name = str(prim.GetTypeName())
             if any(prim.GetPath().HasPrefix(p) for p in instancers):
-                continue  # a PointInstancer's prototype: drawn only at the instances, which are left out
+                continue  # under a PointInstancer: its prototypes are drawn only where it places them
             if type_name == "PointInstancer":
                 instancers.append(prim.GetPath())
-                indices = UsdGeom.PointInstancer(prim).GetProtoIndicesAttr().Get(self.time)
-                inside = [
-                    str(q.GetTypeName()) for q in Usd.PrimRange(prim, pred) if q != prim and q.GetTypeName()
-                ]
-                lamps = sum(1 for t in inside if t in ("SphereLight", "DistantLight") or t in _UNSUPPORTED_LIGHTS)
-                self.skip(
-                    prim,
-                    f"PointInstancer prims are not supported: its {len(indices) if indices is not None else 0} "
-                    f"instances are left out ({lamps} lights and {inside.count('Mesh')} meshes among its prototypes, "
-                    "which are drawn only where it places them)",
-                )
+                if self.drawn(prim, type_name):
+                    got_lights, got_meshes, got_prims = self.point_instancer(prim, pred)
+                    lights += got_lights
+                    meshes += got_meshes
+                    light_prims += got_prims
                 continue
             if _authored(prim, NS + "medium:type"):
                 media.append(self.medium(prim))
@@ -799,39 +941,16 @@ class _Converter:
                 continue
             if type_name in _STRUCTURAL:
                 continue
-            img = UsdGeom.Imageable(prim)
-            if img and img.ComputeVisibility(self.time) == UsdGeom.Tokens.invisible:
-                self.skip(prim, f"invisible {type_name}")
+            if not self.drawn(prim, type_name):
                 continue
-            if img and img.ComputePurpose() in (UsdGeom.Tokens.guide, UsdGeom.Tokens.proxy):
-                self.skip(prim, f"{type_name} with purpose {img.ComputePurpose()}")
-                continue
-            if type_name == "SphereLight":
-                light = self.sphere_light(prim)
-            elif type_name == "DistantLight":
-                light = self.distant_light(prim)
-            elif type_name in ("DomeLight", "DomeLight_1"):
-                light = self.dome_light(prim)
-            elif type_name in _UNSUPPORTED_LIGHTS:
-                self.skip(prim, f"{type_name} is not supported (Tyndall has point, spot and sun lights)")
-                continue
-            elif type_name == "Mesh":
-                mesh = self.mesh(prim)
-                if mesh is not None:
-                    meshes.append(mesh)
-                continue
-            elif type_name == "Camera":
+            if type_name == "Camera":
                 cameras.append(prim)
                 continue
-            elif type_name == "Volume":
-                self.skip(prim, "Volume without tyndall:medium attributes (OpenVDB grids are not read)")
-                continue
-            else:
-                if img or prim.HasAPI(UsdLux.LightAPI):
-                    self.skip(prim, f"{type_name} prims are not supported")
-                continue
-            if light is not None:
-                lights.append(light)
+            kind, obj = self.light_or_mesh(prim, type_name)
+            if kind == "mesh" and obj is not None:
+                meshes.append(obj)
+            elif kind == "light" and obj is not None:
+                lights.append(obj)
                 light_prims.append(str(prim.GetPath()))
 
         settings = self.settings_prim(prims)
@@ -854,7 +973,9 @@ class _Converter:
                 "Blender export: enableColorTemperature is written for every light, so it is ignored where "
                 f"colorTemperature is not authored (no tint): {', '.join(self.untinted)}"
             )
-        return Conversion(scene, self.skipped, self.notes, sky, light_prims)
+        # (A PointInstancer's instances repeat their prototype's notes and skips.)
+        skipped = [dict(t) for t in dict.fromkeys(tuple(d.items()) for d in self.skipped)]
+        return Conversion(scene, skipped, list(dict.fromkeys(self.notes)), sky, light_prims)
 
     def render_settings(self, prims: list[Usd.Prim]) -> Usd.Prim | None:
         path = self.stage.GetMetadata("renderSettingsPrimPath")
