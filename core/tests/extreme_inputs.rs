@@ -862,3 +862,27 @@ fn an_overflowing_fog_that_leaves_channels_clear_keeps_the_other_media_in_them()
         "centre pixel L = {l}, saturated value {saturated}"
     );
 }
+
+/// The same eye just above and just below the depth where the height fog's
+/// density overflows (700 scale heights below its reference): above, the
+/// ray is integrated; below, the fog's saturated closed form stands. Both
+/// must see the sun dimmed by the fog layer around the eye (the closed form
+/// once took the sun undimmed: a 1.1 % jump).
+#[test]
+fn the_saturated_fog_sees_the_sun_dimmed_by_the_other_media() {
+    let centre = |z: f64| {
+        let json = format!(
+            r#"{{"version":1,
+            "camera":{{"type":"perspective","position":[0,0,{z}],"orientation":{{"look_at":{{"target":[0,100,{z}]}}}},"resolution":[5,3]}},
+            "lights":[{{"type":"sun","direction_to_sun":[0,0.3,1]}},{{"type":"ambient"}}],
+            "media":[{{"type":"height_fog","scale_height_m":1,"mie":{{"scattering":0.01}}}},
+                     {{"type":"fog_layer","ground_height_m":-2000,"top_height_m":-600,"extinction":0.01,"min_sun_elevation_deg":0}}],
+            "output":{{"layers":["inscatter","transmittance","error"],"pixel_filter":{{"type":"none"}}}}}}"#
+        );
+        check_images(&format!("eye at z = {z}"), &json);
+        let (img, _) = render(&Scene::from_json_str(&json, "z").unwrap(), None).unwrap();
+        img.inscatter[7][0] as f64
+    };
+    let (above, below) = (centre(-699.9), centre(-700.1));
+    assert!((below / above - 1.0).abs() < 1e-4, "integrated {above}, saturated {below}");
+}

@@ -1318,14 +1318,30 @@ fn integrate_media<const C: usize>(
     // view ray is opaque at once and its own closed form (saturated:
     // L = J·σ_s/σ_t, T = 0) is the answer. A channel it does not dim
     // (extinction 0 there, so no scattering either) sees the other media
-    // alone, as if it were not on the ray.
+    // alone, as if it were not on the ray. The suns reach the eye dimmed by
+    // the other media, as in the integrand below.
     if let Some((i, opaque)) = media
         .iter()
         .map(|m| m.density_overflows_at(ray.origin))
         .enumerate()
         .find(|(_, o)| o.contains(&true))
     {
-        let mut out = media[i].closed_form(ray, lights);
+        let mut out = if lights.suns.is_empty() || media.len() == 1 {
+            media[i].closed_form(ray, lights)
+        } else {
+            let mut dimmed = lights.clone();
+            for sun in dimmed.suns.iter_mut() {
+                for (j, other) in media.iter().enumerate() {
+                    if j != i {
+                        let t = other.sun_transmittance_at(ray.origin, sun.to_sun);
+                        for c in 0..C {
+                            sun.irradiance[c] *= t[c];
+                        }
+                    }
+                }
+            }
+            media[i].closed_form(ray, &dimmed)
+        };
         let clear: Vec<usize> = (0..C).filter(|&c| !opaque[c]).collect();
         if clear.is_empty() || media.len() == 1 {
             return (out, true);
