@@ -244,9 +244,10 @@ class _Converter:
 
     def world_matrix(self, prim: Usd.Prim) -> Gf.Matrix4d:
         """Local → Tyndall world (row-vector convention), checked to be finite and invertible."""
-        if self.instance_matrix is not None:
-            return self.instance_matrix * self.to_world
-        m = self.xf_cache.GetLocalToWorldTransform(prim) * self.to_world
+        instance = self.instance_matrix
+        m = (instance if instance is not None else self.xf_cache.GetLocalToWorldTransform(prim)) * self.to_world
+        if instance is not None and _geom.is_finite_matrix(m) and abs(_geom.det3(m)) > 1e-300:
+            return m
         if _geom.is_finite_matrix(m) and abs(_geom.det3(m)) > 1e-300 and m.GetColumn(3) == Gf.Vec4d(0, 0, 0, 1):
             return m
         # Name the prim whose own xform ops are at fault.
@@ -793,15 +794,15 @@ class _Converter:
             self.skip(prim, f"{type_name} prims are not supported")
         return "", None
 
-    def point_instancer(
-        self, prim: Usd.Prim, pred: Any
-    ) -> tuple[list[dict[str, Any]], list[dict[str, Any]], list[str]]:
+    def point_instancer(self, prim: Usd.Prim) -> tuple[list[dict[str, Any]], list[dict[str, Any]], list[str]]:
         """The lights and meshes a PointInstancer places: every lamp and mesh under each
         prototype, once per instance that ``invisibleIds`` and ``inactiveIds`` leave drawn,
         at ``(its transform below the prototype) · (the instance's transform, which holds the
         prototype's own) · (the instancer's local → world)`` — UsdGeom.PointInstancer's
-        ``ComputeInstanceTransformsAtTime``. Instance ``i``'s copies are named
-        ``<name>_<i>``; the light prims listed are the prototypes' (once per instance)."""
+        ``ComputeInstanceTransformsAtTime``. A prototype is traversed as UsdImaging does:
+        defined prims under it (also below an ``over``), its visibility and purpose from its
+        root down. Instance ``i``'s copies are named ``<name>_<i>``; the light prims listed
+        are the prototypes' (once per instance)."""
         path = str(prim.GetPath())
         inst = UsdGeom.PointInstancer(prim)
         protos = inst.GetPrototypesRel().GetTargets()
@@ -815,35 +816,44 @@ class _Converter:
         bad = next((k for k in indices if not 0 <= k < len(protos)), None)
         if bad is not None:
             raise UsdSceneError(path, "protoIndices", f"index {bad} is out of range for {len(protos)} prototypes")
+        # USD only warns about (and then ignores) arrays of the wrong length but positions.
+        for name in ("positions", "orientations", "orientationsf", "scales"):
+            attr = prim.GetAttribute(name)
+            n = len(attr.Get(self.time) or []) if attr and attr.HasAuthoredValue() else None
+            if (n is not None or name == "positions") and n != len(indices):
+                raise UsdSceneError(path, name, f"{n or 0} values for {len(indices)} instances (protoIndices)")
+        # The earliest time code (the default) is no time to move points by their velocities:
+        # the earliest sample of the positions is.
+        at = self.time
+        if at.IsEarliestTime():
+            samples = inst.GetPositionsAttr().GetTimeSamples()
+            at = Usd.TimeCode(samples[0]) if samples else Usd.TimeCode.Default()
         xforms = inst.ComputeInstanceTransformsAtTime(
-            self.time, self.time, UsdGeom.PointInstancer.IncludeProtoXform, UsdGeom.PointInstancer.IgnoreMask
+            at, at, UsdGeom.PointInstancer.IncludeProtoXform, UsdGeom.PointInstancer.IgnoreMask
         )
         if len(xforms) != len(indices):
-            sizes = {
-                name: len(attr.Get(self.time) or [])
-                for name, attr in (
-                    ("positions", inst.GetPositionsAttr()),
-                    ("orientations", inst.GetOrientationsAttr()),
-                    ("scales", inst.GetScalesAttr()),
-                )
-                if attr.HasAuthoredValue()
-            }
-            wrong = next((n for n, k in sizes.items() if k != len(indices)), "positions")
-            raise UsdSceneError(
-                path, wrong, f"{sizes.get(wrong, 0)} values for {len(indices)} instances (protoIndices)"
-            )
+            raise UsdSceneError(path, "positions", f"no instance transforms for {len(indices)} instances")
         mask = list(inst.ComputeMaskAtTime(self.time)) or [True] * len(indices)
         base = self.xf_cache.GetLocalToWorldTransform(prim)
-        # What each prototype holds, with its transform below the prototype's root.
+        if not _geom.is_finite_matrix(base) or abs(_geom.det3(base)) <= 1e-300:
+            self.world_matrix(prim)  # names the prim whose own xform ops are singular
+        proto_pred = Usd.TraverseInstanceProxies(Usd.PrimIsActive & Usd.PrimHasDefiningSpecifier)
+        # What each prototype holds, with its transform below the prototype's root: the
+        # product of the local transforms from the prim up to the root's child (exact, no
+        # inverse; the root's own is in the instance's transform).
         contents: dict[int, list[tuple[Usd.Prim, str, Gf.Matrix4d]]] = {}
         for k in sorted(set(indices)):
             root = self.stage.GetPrimAtPath(protos[k])
             if not root:
                 raise UsdSceneError(path, "prototypes", f"target {protos[k]} is not a prim on the stage")
-            below_root = self.xf_cache.GetLocalToWorldTransform(root).GetInverse()
+            if not root.IsActive() or not root.HasDefiningSpecifier():
+                what = "inactive" if not root.IsActive() else "not defined (an over)"
+                self.skip(root, f"prototype {k} of the PointInstancer {path} is {what}: its instances are left out")
+                contents[k] = []
+                continue
             held: list[tuple[Usd.Prim, str, Gf.Matrix4d]] = []
             nested: list[Sdf.Path] = []
-            for q in Usd.PrimRange(root, pred):
+            for q in Usd.PrimRange(root, proto_pred):
                 type_name = str(q.GetTypeName())
                 if any(q.GetPath().HasPrefix(n) for n in nested):
                     continue
@@ -855,34 +865,43 @@ class _Converter:
                 if type_name in ("DomeLight", "DomeLight_1"):
                     self.skip(q, f"a DomeLight inside the prototype of the PointInstancer {path} is not supported")
                     continue
-                if type_name in _STRUCTURAL or not self.drawn(q, type_name):
+                if type_name in _STRUCTURAL or not self.drawn_in_prototype(q, root, type_name):
                     continue
-                rel = self.xf_cache.GetLocalToWorldTransform(q) * below_root
-                held.append((q, type_name, rel))
+                rel = Gf.Matrix4d(1.0)
+                p = q
+                while p != root:
+                    xf = UsdGeom.Xformable(p)
+                    if xf:
+                        local, resets = self.xf_cache.GetLocalTransformation(p)
+                        if resets:
+                            self.skip(q, f"resetXformStack inside the prototype of the PointInstancer {path}")
+                            break
+                        rel = rel * local
+                    p = p.GetParent()
+                else:
+                    if not _geom.is_finite_matrix(rel) or abs(_geom.det3(rel)) <= 1e-300:
+                        self.world_matrix(q)  # names the prim whose own xform ops are singular
+                    held.append((q, type_name, rel))
             contents[k] = held
         converted: dict[Sdf.Path, dict[str, Any] | None] = {}
         try:
             for i, (k, drawn) in enumerate(zip(indices, mask, strict=True)):
                 if not drawn:
                     continue
+                x = xforms[i]
+                if not _geom.is_finite_matrix(x) or abs(_geom.det3(x)) <= 1e-300:
+                    raise UsdSceneError(
+                        path, "scales", f"instance {i}'s transform is singular or not finite (a scale of 0?)"
+                    )
                 for q, type_name, rel in contents[k]:
-                    m = rel * xforms[i] * base
+                    m = rel * x * base
                     self.instance_matrix = m
-                    if not (
-                        _geom.is_finite_matrix(m * self.to_world)
-                        and abs(_geom.det3(m * self.to_world)) > 1e-300
-                        and m.GetColumn(3) == Gf.Vec4d(0, 0, 0, 1)
-                    ):
-                        raise UsdSceneError(
-                            path, "scales", f"instance {i} has a non-invertible or non-finite transform"
-                        )
                     if type_name == "Mesh" and q.GetPath() in converted:
                         # The same points and triangles: only the transform differs.
                         first = converted[q.GetPath()]
                         if first is not None:
-                            mesh = {**first, "transform": {"matrix": _geom.to_row_major(m * self.to_world)}}
-                            mesh["name"] = f"{q.GetName()}_{i}"
-                            meshes.append(mesh)
+                            matrix = _geom.to_row_major(self.world_matrix(q))
+                            meshes.append({**first, "name": f"{q.GetName()}_{i}", "transform": {"matrix": matrix}})
                         continue
                     kind, obj = self.light_or_mesh(q, type_name)
                     if kind == "mesh":
@@ -904,6 +923,29 @@ class _Converter:
         )
         return lights, meshes, light_prims
 
+    def drawn_in_prototype(self, q: Usd.Prim, root: Usd.Prim, type_name: str) -> bool:
+        """:meth:`drawn` for a prim of a PointInstancer's prototype, whose visibility and
+        purpose come from the prototype's root down (as UsdImaging draws instances), not from
+        the prims above it (a hidden container of prototypes hides no instance)."""
+        purpose = None
+        p = q
+        while True:
+            img = UsdGeom.Imageable(p)
+            if img:
+                if img.GetVisibilityAttr().Get(self.time) == UsdGeom.Tokens.invisible:
+                    self.skip(q, f"invisible {type_name} (in a PointInstancer's prototype)")
+                    return False
+                attr = img.GetPurposeAttr()
+                if purpose is None and attr.HasAuthoredValue():
+                    purpose = attr.Get()
+            if p == root:
+                break
+            p = p.GetParent()
+        if purpose in (UsdGeom.Tokens.guide, UsdGeom.Tokens.proxy):
+            self.skip(q, f"{type_name} with purpose {purpose} (in a PointInstancer's prototype)")
+            return False
+        return True
+
     def run(self) -> Conversion:
         pred = Usd.TraverseInstanceProxies(Usd.PrimDefaultPredicate)
         prims = list(Usd.PrimRange(self.stage.GetPseudoRoot(), pred))[1:]
@@ -919,14 +961,6 @@ class _Converter:
             type_name = str(prim.GetTypeName())
             if any(prim.GetPath().HasPrefix(p) for p in instancers):
                 continue  # under a PointInstancer: its prototypes are drawn only where it places them
-            if type_name == "PointInstancer":
-                instancers.append(prim.GetPath())
-                if self.drawn(prim, type_name):
-                    got_lights, got_meshes, got_prims = self.point_instancer(prim, pred)
-                    lights += got_lights
-                    meshes += got_meshes
-                    light_prims += got_prims
-                continue
             if _authored(prim, NS + "medium:type"):
                 media.append(self.medium(prim))
                 medium_paths.append(prim.GetPath())
@@ -935,6 +969,14 @@ class _Converter:
             if owner is not None:
                 if type_name not in _STRUCTURAL:
                     self.skip(prim, f"{type_name} inside the medium prim {owner}: it gives the medium's box only")
+                continue
+            if type_name == "PointInstancer":
+                instancers.append(prim.GetPath())
+                if self.drawn(prim, type_name):
+                    got_lights, got_meshes, got_prims = self.point_instancer(prim)
+                    lights += got_lights
+                    meshes += got_meshes
+                    light_prims += got_prims
                 continue
             if type_name == "RenderSettings":
                 render_settings.append(prim)
@@ -971,7 +1013,7 @@ class _Converter:
         if self.untinted:
             self.notes.append(
                 "Blender export: enableColorTemperature is written for every light, so it is ignored where "
-                f"colorTemperature is not authored (no tint): {', '.join(self.untinted)}"
+                f"colorTemperature is not authored (no tint): {', '.join(dict.fromkeys(self.untinted))}"
             )
         # (A PointInstancer's instances repeat their prototype's notes and skips.)
         skipped = [dict(t) for t in dict.fromkeys(tuple(d.items()) for d in self.skipped)]
