@@ -757,6 +757,46 @@ def test_results_layer_imports_into_blender(tmp_path: Path) -> None:
     assert _close(got["mapping_rotation"], [0.0, 0.0, 0.0], 1e-5)  # an unrotated Environment Texture
 
 
+_IMPORT_INSTANCES = """
+import json, sys, bpy
+bpy.ops.wm.read_factory_settings(use_empty=True)
+bpy.ops.wm.usd_import(filepath=sys.argv[1])
+out = {"lights": [], "meshes": []}
+for inst in bpy.context.evaluated_depsgraph_get().object_instances:
+    ob, m = inst.object, inst.matrix_world
+    if ob.type == "LIGHT":
+        out["lights"].append(list(m.translation))
+    elif ob.type == "MESH":
+        out["meshes"].append(sorted(list(m @ v.co) for v in ob.data.vertices))
+json.dump(out, open(sys.argv[2], "w"))
+"""
+
+
+def test_blender_places_a_point_instancers_instances_where_we_do(tmp_path: Path) -> None:
+    """Blender 5.0's own USD importer, the authority on what a stage means in Blender,
+    puts the instancer's lamps and meshes where the reader does (the rig of the test above:
+    a turned instancer under a turned Xform, one instance turned and doubled, one hidden)."""
+    exe = _bpy_python()
+    stage = _stage(tmp_path, name="rig.usda")
+    _instancer_rig(stage, explicit=False)
+    stage.Save()
+    conv = convert_stage(stage)
+    (tmp_path / "imp.py").write_text(_IMPORT_INSTANCES)
+    out = tmp_path / "imp.json"
+    cmd = [exe, str(tmp_path / "imp.py"), str(tmp_path / "rig.usda"), str(out)]
+    subprocess.run(cmd, check=True, capture_output=True)
+    got = json.loads(out.read_text())
+    ours_lights = sorted(light["position"] for light in conv.scene["lights"])
+    ours_meshes = []
+    for m in conv.scene["meshes"]:
+        matrix = np.array(m["transform"]["matrix"])
+        points = np.c_[np.array(m["positions"]), np.ones(len(m["positions"]))]
+        ours_meshes.append(sorted((matrix @ points.T).T[:, :3].tolist()))
+    assert len(got["lights"]) == len(ours_lights) == 2 and len(got["meshes"]) == len(ours_meshes) == 2, got
+    assert _close(sorted(got["lights"]), ours_lights, 1e-5), (got["lights"], ours_lights)
+    assert _close(sorted(got["meshes"]), sorted(ours_meshes), 1e-5), (got["meshes"], ours_meshes)
+
+
 # ------------------------------------------------------------------ CLI
 
 
