@@ -774,8 +774,9 @@ json.dump(out, open(sys.argv[2], "w"))
 
 def test_blender_places_a_point_instancers_instances_where_we_do(tmp_path: Path) -> None:
     """Blender 5.0's own USD importer, the authority on what a stage means in Blender,
-    puts the instancer's lamps and meshes where the reader does (the rig of the test above:
-    a turned instancer under a turned Xform, one instance turned and doubled, one hidden)."""
+    puts the instancer's lamps and meshes where the reader does (the rig of
+    test_a_point_instancers_lamps_and_meshes_stand_where_it_places_them: a turned instancer
+    under a turned Xform, one instance turned and doubled, one hidden)."""
     exe = _bpy_python()
     stage = _stage(tmp_path, name="rig.usda")
     _instancer_rig(stage, explicit=False)
@@ -1077,8 +1078,8 @@ def test_a_point_instancer_with_bad_indices_or_sizes_is_named(tmp_path: Path) ->
 
 
 def test_what_a_point_instancers_prototype_cannot_hold_is_listed(tmp_path: Path) -> None:
-    """A nested instancer, a camera or a dome light inside a prototype is listed once, not
-    once per instance, and the prototype's lamp is still placed at every instance."""
+    """A nested instancer (with what it holds) or a dome light inside a prototype is listed
+    once, not once per instance, and the prototype's lamp is still placed at every instance."""
     stage = _stage(tmp_path)
     inst = UsdGeom.PointInstancer.Define(stage, "/World/PI")
     UsdLux.SphereLight.Define(stage, "/World/PI/Protos/P/Lamp")
