@@ -1304,6 +1304,27 @@ thread_local! {
     static STAGE_SCRATCH: std::cell::RefCell<stage::Scratch> = std::cell::RefCell::new(stage::Scratch::default());
 }
 
+/// The lights with each sun dimmed at `p` by every medium but `media[own]`
+/// (that medium's own attenuation is inside its source and closed form);
+/// `None` where nothing would change (no suns, or no other medium).
+fn suns_dimmed_by_others<const C: usize>(lights: &LightSet<C>, media: &[PreparedMedium<C>], own: usize, p: DVec3) -> Option<LightSet<C>> {
+    if lights.suns.is_empty() || media.len() == 1 {
+        return None;
+    }
+    let mut dimmed = lights.clone();
+    for sun in dimmed.suns.iter_mut() {
+        for (j, other) in media.iter().enumerate() {
+            if j != own {
+                let t = other.sun_transmittance_at(p, sun.to_sun);
+                for c in 0..C {
+                    sun.irradiance[c] *= t[c];
+                }
+            }
+        }
+    }
+    Some(dimmed)
+}
+
 /// Several media on one ray: `L = ∫ Σ S_m e^{−Σ τ_m}`, adaptive G7–K15 over
 /// each piece between medium boundaries; an infinite ray is mapped to a finite
 /// interval by `s = a + σ·u/(1 − u)`.
@@ -1326,21 +1347,9 @@ fn integrate_media<const C: usize>(
         .enumerate()
         .find(|(_, o)| o.contains(&true))
     {
-        let mut out = if lights.suns.is_empty() || media.len() == 1 {
-            media[i].closed_form(ray, lights)
-        } else {
-            let mut dimmed = lights.clone();
-            for sun in dimmed.suns.iter_mut() {
-                for (j, other) in media.iter().enumerate() {
-                    if j != i {
-                        let t = other.sun_transmittance_at(ray.origin, sun.to_sun);
-                        for c in 0..C {
-                            sun.irradiance[c] *= t[c];
-                        }
-                    }
-                }
-            }
-            media[i].closed_form(ray, &dimmed)
+        let mut out = match suns_dimmed_by_others(lights, media, i, ray.origin) {
+            Some(dimmed) => media[i].closed_form(ray, &dimmed),
+            None => media[i].closed_form(ray, lights),
         };
         let clear: Vec<usize> = (0..C).filter(|&c| !opaque[c]).collect();
         if clear.is_empty() || media.len() == 1 {
@@ -1374,21 +1383,9 @@ fn integrate_media<const C: usize>(
         let p = ray.origin + ray.dir * s;
         let mut out = [0.0; C];
         for (mi, m) in media.iter().enumerate() {
-            let src = if lights.suns.is_empty() || media.len() == 1 {
-                m.source(ray, s, lights)
-            } else {
-                let mut dimmed = lights.clone();
-                for sun in dimmed.suns.iter_mut() {
-                    for (oi, other) in media.iter().enumerate() {
-                        if oi != mi {
-                            let t = other.sun_transmittance_at(p, sun.to_sun);
-                            for c in 0..C {
-                                sun.irradiance[c] *= t[c];
-                            }
-                        }
-                    }
-                }
-                m.source(ray, s, &dimmed)
+            let src = match suns_dimmed_by_others(lights, media, mi, p) {
+                Some(dimmed) => m.source(ray, s, &dimmed),
+                None => m.source(ray, s, lights),
             };
             for c in 0..C {
                 out[c] += src[c];
