@@ -886,3 +886,60 @@ fn the_saturated_fog_sees_the_sun_dimmed_by_the_other_media() {
     let (above, below) = (centre(-699.9), centre(-700.1));
     assert!((below / above - 1.0).abs() < 1e-4, "integrated {above}, saturated {below}");
 }
+
+/// Two height fogs whose densities both overflow at the eye: the ray is
+/// opaque at once, and its value is each fog's saturated closed form
+/// weighted by its share of the extinction at the eye,
+/// `L = Σ σ_t,i L_i / Σ σ_t,i` with `L_i = J σ_s,i/σ_t,i`. A fog `e^{50}`
+/// times denser than the other is the whole answer, whichever comes first
+/// in the scene (the first in scene order once won); two fogs of equal
+/// density and different albedo mix, and the value is the same just above
+/// the overflow threshold, where the ray is integrated.
+#[test]
+fn two_overflowing_fogs_share_the_saturated_value_by_their_extinction() {
+    let centre = |z: f64, media: &str| {
+        let json = format!(
+            r#"{{"version":1,
+            "camera":{{"type":"perspective","position":[0,0,{z}],"orientation":{{"look_at":{{"target":[0,100,{z}]}}}},"resolution":[5,3]}},
+            "lights":[{{"type":"sun","direction_to_sun":[0,0.3,1]}},{{"type":"ambient"}}],
+            "media":[{media}],
+            "output":{{"layers":["inscatter","transmittance","error"],"pixel_filter":{{"type":"none"}}}}}}"#
+        );
+        check_images(&format!("eye at z = {z} in {media}"), &json);
+        let (img, _) = render(&Scene::from_json_str(&json, "z").unwrap(), None).unwrap();
+        assert_eq!(img.transmittance[7], [0.0; 3], "{media}: opaque at the eye");
+        img.inscatter[7].map(f64::from)
+    };
+    // The sun is at μ = 0.3/√1.09 from the centre pixel's view direction.
+    let mie = Phase::Cs(0.76).eval(0.3 / 1.09f64.sqrt()) + 1.0;
+    let ray = Phase::Rayleigh.eval(0.3 / 1.09f64.sqrt()) + 1.0;
+    // A: Mie, albedo 1 (L = p_CS + 1); B: Rayleigh, albedo ½ (L = (p_R + 1)/2).
+    let fog_a =
+        |z_ref: f64| format!(r#"{{"type":"height_fog","scale_height_m":1,"reference_height_m":{z_ref},"mie":{{"scattering":0.01}}}}"#);
+    let fog_b = |z_ref: f64| {
+        format!(
+            r#"{{"type":"height_fog","scale_height_m":1,"reference_height_m":{z_ref},"rayleigh":{{"scattering":0.01,"absorption":0.01}}}}"#
+        )
+    };
+    let close = |l: [f64; 3], want: f64, what: &str| {
+        for c in 0..3 {
+            assert!((l[c] / want - 1.0).abs() < 1e-4, "{what}: L[{c}] = {}, want {want}", l[c]);
+        }
+    };
+    // B's reference 50 m lower: A is e^{50} times denser at the eye.
+    let a_b = centre(-1000.0, &format!("{},{}", fog_a(0.0), fog_b(-50.0)));
+    let b_a = centre(-1000.0, &format!("{},{}", fog_b(-50.0), fog_a(0.0)));
+    close(a_b, mie, "A denser, A first");
+    close(b_a, mie, "A denser, B first");
+    // And the other way round: B denser, whichever comes first.
+    close(
+        centre(-1000.0, &format!("{},{}", fog_a(-50.0), fog_b(0.0))),
+        ray / 2.0,
+        "B denser, A first",
+    );
+    // Equal densities: σ_t,A = 0.01, σ_t,B = 0.02.
+    let mixed = (0.01 * mie + 0.02 * ray / 2.0) / 0.03;
+    let both = format!("{},{}", fog_a(0.0), fog_b(0.0));
+    close(centre(-700.1, &both), mixed, "equal densities, saturated");
+    close(centre(-699.9, &both), mixed, "equal densities, integrated");
+}

@@ -321,14 +321,18 @@ impl<const C: usize> PreparedMedium<C> {
         }
     }
 
-    /// The channels in which the density at `p` is beyond f64 (only a height
-    /// fog far below its reference height can do that, and only where its
-    /// extinction is not 0); there the closed form, which works in log space,
-    /// is the only safe evaluation.
-    pub fn density_overflows_at(&self, p: DVec3) -> [bool; C] {
+    /// `ln σ_t(p)` in the channels where the density at `p` is beyond f64
+    /// (only a height fog far below its reference height can do that, and
+    /// only where its extinction is not 0), `None` in the others. There the
+    /// closed form, which works in log space, is the only safe evaluation,
+    /// and the log extinction says which of several such media dominates.
+    pub fn overflowing_log_extinction_at(&self, p: DVec3) -> [Option<f64>; C] {
         match self {
-            PreparedMedium::HeightFog(m) if -(p.z - m.reference_height) / m.scale_height > 700.0 => m.extinction.map(|b| b > 0.0),
-            _ => [false; C],
+            PreparedMedium::HeightFog(m) => {
+                let log_density = -(p.z - m.reference_height) / m.scale_height;
+                m.extinction.map(|b| (log_density > 700.0 && b > 0.0).then(|| b.ln() + log_density))
+            }
+            _ => [None; C],
         }
     }
 

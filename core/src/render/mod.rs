@@ -1325,6 +1325,74 @@ fn suns_dimmed_by_others<const C: usize>(lights: &LightSet<C>, media: &[Prepared
     Some(dimmed)
 }
 
+/// An eye inside media whose density overflows f64 there (height fogs far
+/// below their reference heights; `overflowing` lists them with `ln σ_t` at
+/// the eye in the channels where they overflow). In such a channel the view
+/// ray is opaque at once: `L = Σ_i σ_s,i J_i / Σ_i σ_t,i` at the eye, which
+/// is each fog's own saturated closed form (`J_i σ_s,i/σ_t,i`, `T = 0`)
+/// weighted by its share of the extinction there, `σ_t,i / Σ σ_t` (computed
+/// from the log extinctions, so the denser fog wins whatever the scene
+/// order; the media of finite density add nothing against an infinite
+/// extinction). A channel no overflowing medium dims (extinction 0 there, so
+/// no scattering either) sees the other media alone, as if the fogs were not
+/// on the ray. The suns reach the eye dimmed by the other media, as in
+/// [`integrate_media`]'s integrand.
+fn saturated_at_eye<const C: usize>(
+    ray: &ViewRay,
+    media: &[PreparedMedium<C>],
+    lights: &LightSet<C>,
+    tolerance: f64,
+    overflowing: &[(usize, [Option<f64>; C])],
+) -> (RayResult<C>, bool) {
+    let saturated: Vec<(RayResult<C>, [Option<f64>; C])> = overflowing
+        .iter()
+        .map(|&(i, log_extinction)| {
+            let own = match suns_dimmed_by_others(lights, media, i, ray.origin) {
+                Some(dimmed) => media[i].closed_form(ray, &dimmed),
+                None => media[i].closed_form(ray, lights),
+            };
+            (own, log_extinction)
+        })
+        .collect();
+    let others: Vec<PreparedMedium<C>> = media
+        .iter()
+        .enumerate()
+        .filter(|(j, _)| overflowing.iter().all(|(i, _)| i != j))
+        .map(|(_, m)| m.clone())
+        .collect();
+    let any_clear = (0..C).any(|c| saturated.iter().all(|(_, o)| o[c].is_none()));
+    let (mut out, converged) = if any_clear && !others.is_empty() {
+        integrate_media(ray, &others, lights, tolerance)
+    } else {
+        (RayResult::vacuum(), true)
+    };
+    for c in 0..C {
+        let densest = saturated.iter().filter_map(|(_, o)| o[c]).fold(f64::NEG_INFINITY, f64::max);
+        if densest == f64::NEG_INFINITY {
+            continue;
+        }
+        let (mut inscatter, mut error, mut weights) = (0.0, 0.0, 0.0);
+        for (own, log_extinction) in &saturated {
+            if let Some(l) = log_extinction[c] {
+                if l == densest {
+                    out.sun_transmittance[c] = own.sun_transmittance[c];
+                }
+                let w = (l - densest).exp();
+                inscatter += w * own.inscatter[c];
+                error += w * own.error[c];
+                weights += w;
+            }
+        }
+        out.inscatter[c] = inscatter / weights;
+        out.error[c] = error / weights + medium::rounding_bound(out.inscatter[c], 4.0 * saturated.len() as f64);
+        out.transmittance[c] = 0.0;
+    }
+    for (own, _) in &saturated {
+        out.rel_bound = out.rel_bound.max(own.rel_bound);
+    }
+    (out, converged)
+}
+
 /// Several media on one ray: `L = ∫ Σ S_m e^{−Σ τ_m}`, adaptive G7–K15 over
 /// each piece between medium boundaries; an infinite ray is mapped to a finite
 /// interval by `s = a + σ·u/(1 − u)`.
@@ -1334,37 +1402,14 @@ fn integrate_media<const C: usize>(
     lights: &LightSet<C>,
     tolerance: f64,
 ) -> (RayResult<C>, bool) {
-    // An eye inside a medium whose density overflows f64 (a height fog far
-    // below its reference height): in every channel that medium dims, the
-    // view ray is opaque at once and its own closed form (saturated:
-    // L = J·σ_s/σ_t, T = 0) is the answer. A channel it does not dim
-    // (extinction 0 there, so no scattering either) sees the other media
-    // alone, as if it were not on the ray. The suns reach the eye dimmed by
-    // the other media, as in the integrand below.
-    if let Some((i, opaque)) = media
+    let overflowing: Vec<(usize, [Option<f64>; C])> = media
         .iter()
-        .map(|m| m.density_overflows_at(ray.origin))
+        .map(|m| m.overflowing_log_extinction_at(ray.origin))
         .enumerate()
-        .find(|(_, o)| o.contains(&true))
-    {
-        let mut out = match suns_dimmed_by_others(lights, media, i, ray.origin) {
-            Some(dimmed) => media[i].closed_form(ray, &dimmed),
-            None => media[i].closed_form(ray, lights),
-        };
-        let clear: Vec<usize> = (0..C).filter(|&c| !opaque[c]).collect();
-        if clear.is_empty() || media.len() == 1 {
-            return (out, true);
-        }
-        let others: Vec<PreparedMedium<C>> = media.iter().enumerate().filter(|(j, _)| *j != i).map(|(_, m)| m.clone()).collect();
-        let (rest, converged) = integrate_media(ray, &others, lights, tolerance);
-        for c in clear {
-            out.inscatter[c] = rest.inscatter[c];
-            out.transmittance[c] = rest.transmittance[c];
-            out.sun_transmittance[c] = rest.sun_transmittance[c];
-            out.error[c] = rest.error[c];
-        }
-        out.rel_bound = out.rel_bound.max(rest.rel_bound);
-        return (out, converged);
+        .filter(|(_, o)| o.iter().any(Option::is_some))
+        .collect();
+    if !overflowing.is_empty() {
+        return saturated_at_eye(ray, media, lights, tolerance, &overflowing);
     }
     let total_tau = |s: f64| {
         let mut t = [0.0; C];
