@@ -936,27 +936,10 @@ def _instancer_rig(stage: Usd.Stage, explicit: bool) -> None:
     orientations = [Gf.Quath(1, 0, 0, 0), Gf.Quath(1, 0, 0, 0), Gf.Quath(0, 1, 0, 0)]
     scales = [Gf.Vec3f(1, 1, 1), Gf.Vec3f(1, 1, 1), Gf.Vec3f(2, 2, 2)]
 
-    def fixture(root: str) -> None:
-        yoke = UsdGeom.Xform.Define(stage, root)
-        _xform(yoke.GetPrim(), (0, 0, 0.5), (0, 0, 0))
-        head = UsdGeom.Xform.Define(stage, root + "/Head")
-        _xform(head.GetPrim(), (0, 0.2, 0), (-20, 0, 0))
-        lamp = UsdLux.SphereLight.Define(stage, root + "/Head/Lamp")
-        lamp.CreateIntensityAttr(200.0)
-        lamp.CreateRadiusAttr(0.05)
-        shaping = UsdLux.ShapingAPI.Apply(lamp.GetPrim())
-        shaping.CreateShapingConeAngleAttr(15.0)
-        shaping.CreateShapingConeSoftnessAttr(0.2)
-        box = UsdGeom.Mesh.Define(stage, root + "/Flag")
-        box.CreatePointsAttr([(-0.2, -0.2, -0.6), (0.2, -0.2, -0.6), (0.2, 0.2, -0.6), (-0.2, 0.2, -0.6)])
-        box.CreateFaceVertexCountsAttr([4])
-        box.CreateFaceVertexIndicesAttr([0, 1, 2, 3])
-        _xform(box.GetPrim(), (0.1, 0, 0), (0, 0, 0), 1.5)
-
     if not explicit:
         inst = UsdGeom.PointInstancer.Define(stage, "/World/Rig/Truss")
         _xform(inst.GetPrim(), (1, 0, 0), (10, 20, 30))
-        fixture("/World/Rig/Truss/Protos/Fixture")
+        _fixture(stage, "/World/Rig/Truss/Protos/Fixture")
         inst.CreatePrototypesRel().SetTargets([Sdf.Path("/World/Rig/Truss/Protos/Fixture")])
         inst.CreateProtoIndicesAttr([0, 0, 0])
         inst.CreatePositionsAttr(positions)
@@ -968,12 +951,91 @@ def _instancer_rig(stage: Usd.Stage, explicit: bool) -> None:
     _xform(truss.GetPrim(), (1, 0, 0), (10, 20, 30))
     for i in (0, 2):
         place = UsdGeom.Xform.Define(stage, f"/World/Rig/Truss/Place{i}")
-        q = orientations[i]
-        rot = Gf.Rotation(Gf.Quatd(q.GetReal(), Gf.Vec3d(q.GetImaginary())))
-        m = Gf.Matrix4d().SetScale(Gf.Vec3d(scales[i])) * Gf.Matrix4d().SetRotate(rot)
-        m = m * Gf.Matrix4d().SetTranslate(Gf.Vec3d(positions[i]))
-        place.AddTransformOp().Set(m)
-        fixture(f"/World/Rig/Truss/Place{i}/Fixture")
+        place.AddTransformOp().Set(_instance_matrix(positions[i], orientations[i], scales[i]))
+        _fixture(stage, f"/World/Rig/Truss/Place{i}/Fixture")
+
+
+def _fixture(stage: Usd.Stage, root: str) -> None:
+    """A spot lamp on a yoke (two levels of transforms below ``root``) and a flag mesh."""
+    yoke = UsdGeom.Xform.Define(stage, root)
+    _xform(yoke.GetPrim(), (0, 0, 0.5), (0, 0, 0))
+    head = UsdGeom.Xform.Define(stage, root + "/Head")
+    _xform(head.GetPrim(), (0, 0.2, 0), (-20, 0, 0))
+    lamp = UsdLux.SphereLight.Define(stage, root + "/Head/Lamp")
+    lamp.CreateIntensityAttr(200.0)
+    lamp.CreateRadiusAttr(0.05)
+    shaping = UsdLux.ShapingAPI.Apply(lamp.GetPrim())
+    shaping.CreateShapingConeAngleAttr(15.0)
+    shaping.CreateShapingConeSoftnessAttr(0.2)
+    box = UsdGeom.Mesh.Define(stage, root + "/Flag")
+    box.CreatePointsAttr([(-0.2, -0.2, -0.6), (0.2, -0.2, -0.6), (0.2, 0.2, -0.6), (-0.2, 0.2, -0.6)])
+    box.CreateFaceVertexCountsAttr([4])
+    box.CreateFaceVertexIndicesAttr([0, 1, 2, 3])
+    _xform(box.GetPrim(), (0.1, 0, 0), (0, 0, 0), 1.5)
+
+
+def _instance_matrix(position: Gf.Vec3f, orientation: Gf.Quath, scale: Gf.Vec3f) -> Gf.Matrix4d:
+    """An instance's transform as UsdGeom.PointInstancer documents it: scale, then
+    orientation, then translation (row vectors)."""
+    rot = Gf.Rotation(Gf.Quatd(orientation.GetReal(), Gf.Vec3d(orientation.GetImaginary())))
+    m = Gf.Matrix4d().SetScale(Gf.Vec3d(scale)) * Gf.Matrix4d().SetRotate(rot)
+    return m * Gf.Matrix4d().SetTranslate(Gf.Vec3d(position))
+
+
+def _nested_rig(stage: Usd.Stage, explicit: bool) -> None:
+    """Two trusses placed by an outer PointInstancer (the second turned and scaled), each
+    a prototype with its own transform holding, below a turned bar, an inner PointInstancer
+    that places three fixtures (the middle one hidden); or, with ``explicit``, the same
+    lamps and flags as ordinary prims at the composed transforms."""
+    kind = UsdGeom.Xform if explicit else UsdGeom.PointInstancer
+    outer = kind.Define(stage, "/World/Rigs")
+    _xform(outer.GetPrim(), (0.5, 1.0, 0.25), (0, 0, 30))
+    outer_places = [
+        (Gf.Vec3f(-1, 0, 3), Gf.Quath(1, 0, 0, 0), Gf.Vec3f(1, 1, 1)),
+        (Gf.Vec3f(1.5, 0.5, 3.5), Gf.Quath(0.5, 0.5, 0.5, 0.5), Gf.Vec3f(1.5, 1.5, 1.5)),
+    ]
+    inner_places = [
+        (Gf.Vec3f(-1, 0, 0), Gf.Quath(1, 0, 0, 0), Gf.Vec3f(1, 1, 1)),
+        (Gf.Vec3f(0, 0, 0), Gf.Quath(1, 0, 0, 0), Gf.Vec3f(1, 1, 1)),
+        (Gf.Vec3f(1, 0.2, 0), Gf.Quath(0, 1, 0, 0), Gf.Vec3f(0.5, 0.5, 0.5)),
+    ]
+
+    def truss(root: str, inner_place: str) -> None:
+        t = UsdGeom.Xform.Define(stage, root)
+        _xform(t.GetPrim(), (0, 0, 0.3), (0, 0, 10))
+        bar = UsdGeom.Xform.Define(stage, root + "/Bar")
+        _xform(bar.GetPrim(), (0.2, 0, 0), (5, 0, 0))
+        if explicit:
+            lamps = UsdGeom.Xform.Define(stage, root + "/Bar/Lamps")
+            _xform(lamps.GetPrim(), (0, 0.1, 0), (0, 0, -15))
+            for j in (0, 2):
+                place = UsdGeom.Xform.Define(stage, f"{root}/Bar/Lamps/{inner_place}{j}")
+                place.AddTransformOp().Set(_instance_matrix(*inner_places[j]))
+                _fixture(stage, f"{root}/Bar/Lamps/{inner_place}{j}/Fixture")
+            return
+        inner = UsdGeom.PointInstancer.Define(stage, root + "/Bar/Lamps")
+        _xform(inner.GetPrim(), (0, 0.1, 0), (0, 0, -15))
+        _fixture(stage, root + "/Bar/Lamps/Protos/Fixture")
+        inner.CreatePrototypesRel().SetTargets([Sdf.Path(root + "/Bar/Lamps/Protos/Fixture")])
+        inner.CreateProtoIndicesAttr([0, 0, 0])
+        inner.CreatePositionsAttr([p for p, _, _ in inner_places])
+        inner.CreateOrientationsAttr([q for _, q, _ in inner_places])
+        inner.CreateScalesAttr([s_ for _, _, s_ in inner_places])
+        inner.CreateInvisibleIdsAttr([1])
+
+    if explicit:
+        for i, place_i in enumerate(outer_places):
+            place = UsdGeom.Xform.Define(stage, f"/World/Rigs/Place{i}")
+            place.AddTransformOp().Set(_instance_matrix(*place_i))
+            truss(f"/World/Rigs/Place{i}/Truss", "Place")
+        return
+    truss("/World/Rigs/Protos/Truss", "Place")
+    inst = UsdGeom.PointInstancer(outer)
+    inst.CreatePrototypesRel().SetTargets([Sdf.Path("/World/Rigs/Protos/Truss")])
+    inst.CreateProtoIndicesAttr([0, 0])
+    inst.CreatePositionsAttr([p for p, _, _ in outer_places])
+    inst.CreateOrientationsAttr([q for _, q, _ in outer_places])
+    inst.CreateScalesAttr([s_ for _, _, s_ in outer_places])
 
 
 def test_a_point_instancers_lamps_and_meshes_stand_where_it_places_them(tmp_path: Path) -> None:
@@ -1078,22 +1140,65 @@ def test_a_point_instancer_with_bad_indices_or_sizes_is_named(tmp_path: Path) ->
 
 
 def test_what_a_point_instancers_prototype_cannot_hold_is_listed(tmp_path: Path) -> None:
-    """A nested instancer (with what it holds) or a dome light inside a prototype is listed
-    once, not once per instance, and the prototype's lamp is still placed at every instance."""
+    """A camera (with what it holds) or a dome light inside a prototype is listed once, not
+    once per instance, and the prototype's lamp is still placed at every instance."""
     stage = _stage(tmp_path)
     inst = UsdGeom.PointInstancer.Define(stage, "/World/PI")
     UsdLux.SphereLight.Define(stage, "/World/PI/Protos/P/Lamp")
     UsdLux.DomeLight.Define(stage, "/World/PI/Protos/P/Dome")
-    UsdGeom.PointInstancer.Define(stage, "/World/PI/Protos/P/Inner")
-    UsdLux.SphereLight.Define(stage, "/World/PI/Protos/P/Inner/Deep")
+    UsdGeom.Camera.Define(stage, "/World/PI/Protos/P/Cam")
+    UsdLux.SphereLight.Define(stage, "/World/PI/Protos/P/Cam/Deep")
     inst.CreatePrototypesRel().SetTargets([Sdf.Path("/World/PI/Protos/P")])
     inst.CreatePositionsAttr([Gf.Vec3f(-1, 0, 4), Gf.Vec3f(1, 0, 4)])
     inst.CreateProtoIndicesAttr([0, 0])
     conv = convert_stage(stage)
     assert [light["name"] for light in conv.scene["lights"]] == ["Lamp_0", "Lamp_1"]
     assert [light["position"] for light in conv.scene["lights"]] == [[-1.0, 0.0, 4.0], [1.0, 0.0, 4.0]]
-    assert [d["prim"] for d in conv.skipped] == ["/World/PI/Protos/P/Dome", "/World/PI/Protos/P/Inner"]
-    assert "PointInstancer /World/PI is not supported" in conv.skipped[1]["reason"]
+    assert [d["prim"] for d in conv.skipped] == ["/World/PI/Protos/P/Dome", "/World/PI/Protos/P/Cam"]
+    assert "a Camera inside the prototype of the PointInstancer /World/PI" in conv.skipped[1]["reason"]
+
+
+def test_nested_point_instancers_place_their_lamps_in_every_outer_instance(tmp_path: Path) -> None:
+    """A PointInstancer inside another's prototype places its fixtures in every drawn outer
+    instance, where ordinary prims at the composed transforms stand (outer instancer turned,
+    one outer instance turned and scaled, the prototype and the bar below it with their own
+    transforms, the inner instancer turned, one inner instance hidden, one turned and halved);
+    copies are named ``<name>_<outer>_<inner>``."""
+    convs = []
+    for explicit in (False, True):
+        stage = _stage(tmp_path, name=f"nested_{explicit}.usda")
+        _nested_rig(stage, explicit)
+        convs.append(convert_stage(stage))
+    inst, ref = convs
+    assert inst.skipped == [] and ref.skipped == [], (inst.skipped, ref.skipped)
+    assert [light["name"] for light in inst.scene["lights"]] == ["Lamp_0_0", "Lamp_0_2", "Lamp_1_0", "Lamp_1_2"]
+    assert [m["name"] for m in inst.scene["meshes"]] == ["Flag_0_0", "Flag_0_2", "Flag_1_0", "Flag_1_2"]
+    assert inst.light_prims == ["/World/Rigs/Protos/Truss/Bar/Lamps/Protos/Fixture/Head/Lamp"] * 4
+    notes = " | ".join(inst.notes)
+    assert "/World/Rigs: PointInstancer with 2 of 2 instances drawn: 4 lights and 4 meshes placed" in notes, notes
+    assert "2 of 3 instances drawn in each of its instances" in notes, notes
+    assert len(ref.scene["lights"]) == len(ref.scene["meshes"]) == 4
+    for a, b in zip(inst.scene["lights"], ref.scene["lights"], strict=True):
+        _same_tree({**a, "name": ""}, {**b, "name": ""}, 1e-6, a["name"])
+    for a, b in zip(inst.scene["meshes"], ref.scene["meshes"], strict=True):
+        _same_tree({**a, "name": ""}, {**b, "name": ""}, 1e-6, a["name"])
+    # The outer instance's scale 1.5 and the inner one's 0.5 both reach the lamp's radius.
+    assert [round(light["radius_m"], 6) for light in inst.scene["lights"]] == [0.05, 0.025, 0.075, 0.0375]
+
+
+def test_an_instancer_among_its_own_prototypes_is_named(tmp_path: Path) -> None:
+    """A PointInstancer whose prototype holds the instancer itself would place itself
+    forever: an error naming it and its prototypes, not a hang."""
+    stage = _stage(tmp_path)
+    inst = UsdGeom.PointInstancer.Define(stage, "/World/Loop/PI")
+    UsdLux.SphereLight.Define(stage, "/World/Loop/Lamp")
+    inst.CreatePrototypesRel().SetTargets([Sdf.Path("/World/Loop")])
+    inst.CreatePositionsAttr([Gf.Vec3f(0, 0, 4)])
+    inst.CreateProtoIndicesAttr([0])
+    with pytest.raises(UsdSceneError) as e:
+        convert_stage(stage)
+    assert e.value.prim == "/World/Loop/PI" and e.value.attribute == "prototypes", str(e.value)
+    assert "among its own prototypes" in str(e.value)
 
 
 @pytest.mark.parametrize("mpu", [1e-300, 1e-10, 2e9, 1e300])

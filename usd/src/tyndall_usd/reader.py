@@ -232,6 +232,12 @@ class _Converter:
         #: Stage-space local → world matrix of the PointInstancer instance being converted
         #: (``None`` outside :meth:`point_instancer`): it replaces the prim's own.
         self.instance_matrix: Gf.Matrix4d | None = None
+        #: Each PointInstancer's instances and prototypes' contents (:meth:`instancer_plan`),
+        #: and each prototype mesh converted once, by path.
+        self.instancer_plans: dict[
+            str, tuple[list[int], list[bool], list[Gf.Matrix4d], dict[int, list[tuple[Usd.Prim, str, Gf.Matrix4d]]]]
+        ] = {}
+        self.prototype_meshes: dict[Sdf.Path, dict[str, Any] | None] = {}
         if up == UsdGeom.Tokens.y:
             self.notes.append("Y-up stage: rotated +90° about X into Tyndall's Z-up world (as Blender imports it)")
         if mpu != 1.0:
@@ -794,7 +800,13 @@ class _Converter:
             self.skip(prim, f"{type_name} prims are not supported")
         return "", None
 
-    def point_instancer(self, prim: Usd.Prim) -> tuple[list[dict[str, Any]], list[dict[str, Any]], list[str]]:
+    def point_instancer(
+        self,
+        prim: Usd.Prim,
+        base: Gf.Matrix4d | None = None,
+        suffix: str = "",
+        outer: tuple[str, ...] = (),
+    ) -> tuple[list[dict[str, Any]], list[dict[str, Any]], list[str]]:
         """The lights and meshes a PointInstancer places: every lamp and mesh under each
         prototype, once per instance that ``invisibleIds`` and ``inactiveIds`` leave drawn,
         at ``(its transform below the prototype) · (the instance's transform, which holds the
@@ -802,17 +814,101 @@ class _Converter:
         ``ComputeInstanceTransformsAtTime``. A prototype is traversed as UsdImaging does:
         defined prims under it (also below an ``over``), its visibility and purpose from its
         root down. Instance ``i``'s copies are named ``<name>_<i>``; the light prims listed
-        are the prototypes' (once per instance)."""
+        are the prototypes' (once per instance).
+
+        A PointInstancer inside a prototype (nested instancing) places its own prototypes
+        in every drawn instance of the outer one: it is called again with ``base`` its local
+        → world matrix in that instance (``None``: its place on the stage), ``suffix`` the
+        outer instances' numbers (copies of nested instances are named
+        ``<name>_<outer>_<inner>``) and ``outer`` the instancers it is nested in (an
+        instancer among its own prototypes is an error, not an endless loop)."""
         path = str(prim.GetPath())
-        inst = UsdGeom.PointInstancer(prim)
-        protos = inst.GetPrototypesRel().GetTargets()
-        indices = [int(k) for k in (inst.GetProtoIndicesAttr().Get(self.time) or [])]
+        if path in outer:
+            chain = " → ".join((*outer, path))
+            raise UsdSceneError(path, "prototypes", f"the instancer is among its own prototypes ({chain})")
+        plan = self.instancer_plans.get(path)
+        if plan is None:
+            plan = self.instancer_plan(prim)
+            self.instancer_plans[path] = plan
+        indices, mask, xforms, contents = plan
         lights: list[dict[str, Any]] = []
         meshes: list[dict[str, Any]] = []
         light_prims: list[str] = []
         if not indices:
+            return lights, meshes, light_prims  # listed as skipped by instancer_plan
+        if base is None:
+            base = self.xf_cache.GetLocalToWorldTransform(prim)
+            if not _geom.is_finite_matrix(base) or abs(_geom.det3(base)) <= 1e-300:
+                self.world_matrix(prim)  # names the prim whose own xform ops are singular
+        nested = 0
+        try:
+            for i, (k, drawn) in enumerate(zip(indices, mask, strict=True)):
+                if not drawn:
+                    continue
+                x = xforms[i]
+                if not _geom.is_finite_matrix(x) or abs(_geom.det3(x)) <= 1e-300:
+                    raise UsdSceneError(
+                        path, "scales", f"instance {i}'s transform is singular or not finite (a scale of 0?)"
+                    )
+                for q, type_name, rel in contents[k]:
+                    m = rel * x * base
+                    if type_name == "PointInstancer":
+                        nested += 1
+                        got = self.point_instancer(q, m, f"{suffix}_{i}", (*outer, path))
+                        lights += got[0]
+                        meshes += got[1]
+                        light_prims += got[2]
+                        continue
+                    self.instance_matrix = m
+                    name = f"{q.GetName()}{suffix}_{i}"
+                    if type_name == "Mesh" and q.GetPath() in self.prototype_meshes:
+                        # The same points and triangles: only the transform differs.
+                        first = self.prototype_meshes[q.GetPath()]
+                        if first is not None:
+                            matrix = _geom.to_row_major(self.world_matrix(q))
+                            meshes.append({**first, "name": name, "transform": {"matrix": matrix}})
+                        continue
+                    kind, obj = self.light_or_mesh(q, type_name)
+                    if kind == "mesh":
+                        self.prototype_meshes[q.GetPath()] = obj
+                    if obj is None:
+                        continue
+                    obj["name"] = f"{obj['name']}{suffix}_{i}"
+                    if kind == "mesh":
+                        meshes.append(obj)
+                    else:
+                        lights.append(obj)
+                        light_prims.append(str(q.GetPath()))
+        finally:
+            self.instance_matrix = None
+        n_drawn = sum(mask)
+        if outer:
+            self.notes.append(
+                f"{path}: PointInstancer nested in the prototypes of {outer[-1]}, "
+                f"with {n_drawn} of {len(indices)} instances drawn in each of its instances"
+            )
+        else:
+            through = f" (through {nested} nested PointInstancer instances)" if nested else ""
+            self.notes.append(
+                f"{path}: PointInstancer with {n_drawn} of {len(indices)} instances drawn: "
+                f"{len(lights)} lights and {len(meshes)} meshes placed{through}"
+            )
+        return lights, meshes, light_prims
+
+    def instancer_plan(
+        self, prim: Usd.Prim
+    ) -> tuple[list[int], list[bool], list[Gf.Matrix4d], dict[int, list[tuple[Usd.Prim, str, Gf.Matrix4d]]]]:
+        """A PointInstancer's instances (prototype indices, drawn mask, transforms in its own
+        space) and what each prototype it uses holds, with its transform below the
+        prototype's root: the lamps, meshes and nested PointInstancers (read once, however
+        many outer instances place it)."""
+        path = str(prim.GetPath())
+        inst = UsdGeom.PointInstancer(prim)
+        protos = inst.GetPrototypesRel().GetTargets()
+        indices = [int(k) for k in (inst.GetProtoIndicesAttr().Get(self.time) or [])]
+        if not indices:
             self.skip(prim, "PointInstancer with no instances (protoIndices is empty)")
-            return lights, meshes, light_prims
+            return [], [], [], {}
         bad = next((k for k in indices if not 0 <= k < len(protos)), None)
         if bad is not None:
             raise UsdSceneError(path, "protoIndices", f"index {bad} is out of range for {len(protos)} prototypes")
@@ -828,15 +924,14 @@ class _Converter:
         if at.IsEarliestTime():
             samples = inst.GetPositionsAttr().GetTimeSamples()
             at = Usd.TimeCode(samples[0]) if samples else Usd.TimeCode.Default()
-        xforms = inst.ComputeInstanceTransformsAtTime(
-            at, at, UsdGeom.PointInstancer.IncludeProtoXform, UsdGeom.PointInstancer.IgnoreMask
+        xforms = list(
+            inst.ComputeInstanceTransformsAtTime(
+                at, at, UsdGeom.PointInstancer.IncludeProtoXform, UsdGeom.PointInstancer.IgnoreMask
+            )
         )
         if len(xforms) != len(indices):
             raise UsdSceneError(path, "positions", f"no instance transforms for {len(indices)} instances")
-        mask = list(inst.ComputeMaskAtTime(self.time)) or [True] * len(indices)
-        base = self.xf_cache.GetLocalToWorldTransform(prim)
-        if not _geom.is_finite_matrix(base) or abs(_geom.det3(base)) <= 1e-300:
-            self.world_matrix(prim)  # names the prim whose own xform ops are singular
+        mask = [bool(d) for d in inst.ComputeMaskAtTime(self.time)] or [True] * len(indices)
         proto_pred = Usd.TraverseInstanceProxies(Usd.PrimIsActive & Usd.PrimHasDefiningSpecifier)
         # What each prototype holds, with its transform below the prototype's root: the
         # product of the local transforms from the prim up to the root's child (exact, no
@@ -852,19 +947,23 @@ class _Converter:
                 contents[k] = []
                 continue
             held: list[tuple[Usd.Prim, str, Gf.Matrix4d]] = []
-            nested: list[Sdf.Path] = []
+            # Subtrees a prototype's walk does not enter: what it cannot hold, and nested
+            # instancers (which place their own prototypes).
+            closed: list[Sdf.Path] = []
             for q in Usd.PrimRange(root, proto_pred):
                 type_name = str(q.GetTypeName())
-                if any(q.GetPath().HasPrefix(n) for n in nested):
+                if any(q.GetPath().HasPrefix(n) for n in closed):
                     continue
-                if type_name == "PointInstancer" or _authored(q, NS + "medium:type") or type_name == "Camera":
-                    nested.append(q.GetPath())
+                if _authored(q, NS + "medium:type") or type_name == "Camera":
+                    closed.append(q.GetPath())
                     what = "a medium" if _authored(q, NS + "medium:type") else f"a {type_name}"
                     self.skip(q, f"{what} inside the prototype of the PointInstancer {path} is not supported")
                     continue
                 if type_name in ("DomeLight", "DomeLight_1"):
                     self.skip(q, f"a DomeLight inside the prototype of the PointInstancer {path} is not supported")
                     continue
+                if type_name == "PointInstancer":
+                    closed.append(q.GetPath())
                 if type_name in _STRUCTURAL or not self.drawn_in_prototype(q, root, type_name):
                     continue
                 rel = Gf.Matrix4d(1.0)
@@ -883,45 +982,7 @@ class _Converter:
                         self.world_matrix(q)  # names the prim whose own xform ops are singular
                     held.append((q, type_name, rel))
             contents[k] = held
-        converted: dict[Sdf.Path, dict[str, Any] | None] = {}
-        try:
-            for i, (k, drawn) in enumerate(zip(indices, mask, strict=True)):
-                if not drawn:
-                    continue
-                x = xforms[i]
-                if not _geom.is_finite_matrix(x) or abs(_geom.det3(x)) <= 1e-300:
-                    raise UsdSceneError(
-                        path, "scales", f"instance {i}'s transform is singular or not finite (a scale of 0?)"
-                    )
-                for q, type_name, rel in contents[k]:
-                    m = rel * x * base
-                    self.instance_matrix = m
-                    if type_name == "Mesh" and q.GetPath() in converted:
-                        # The same points and triangles: only the transform differs.
-                        first = converted[q.GetPath()]
-                        if first is not None:
-                            matrix = _geom.to_row_major(self.world_matrix(q))
-                            meshes.append({**first, "name": f"{q.GetName()}_{i}", "transform": {"matrix": matrix}})
-                        continue
-                    kind, obj = self.light_or_mesh(q, type_name)
-                    if kind == "mesh":
-                        converted[q.GetPath()] = obj
-                    if obj is None:
-                        continue
-                    obj["name"] = f"{obj['name']}_{i}"
-                    if kind == "mesh":
-                        meshes.append(obj)
-                    else:
-                        lights.append(obj)
-                        light_prims.append(str(q.GetPath()))
-        finally:
-            self.instance_matrix = None
-        n_drawn = sum(mask)
-        self.notes.append(
-            f"{path}: PointInstancer with {n_drawn} of {len(indices)} instances drawn: "
-            f"{len(lights)} lights and {len(meshes)} meshes placed"
-        )
-        return lights, meshes, light_prims
+        return indices, mask, xforms, contents
 
     def drawn_in_prototype(self, q: Usd.Prim, root: Usd.Prim, type_name: str) -> bool:
         """:meth:`drawn` for a prim of a PointInstancer's prototype, whose visibility and
