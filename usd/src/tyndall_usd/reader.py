@@ -853,8 +853,8 @@ class _Converter:
                 for q, type_name, rel in contents[k]:
                     m = rel * x * base
                     if type_name == "PointInstancer":
-                        nested += 1
                         got = self.point_instancer(q, m, f"{suffix}_{i}", (*outer, path))
+                        nested += len(got[0]) + len(got[1])
                         lights += got[0]
                         meshes += got[1]
                         light_prims += got[2]
@@ -888,7 +888,7 @@ class _Converter:
                 f"with {n_drawn} of {len(indices)} instances drawn in each of its instances"
             )
         else:
-            through = f" (through {nested} nested PointInstancer instances)" if nested else ""
+            through = f" ({nested} of them by nested PointInstancers)" if nested else ""
             self.notes.append(
                 f"{path}: PointInstancer with {n_drawn} of {len(indices)} instances drawn: "
                 f"{len(lights)} lights and {len(meshes)} meshes placed{through}"
