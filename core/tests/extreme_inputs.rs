@@ -864,10 +864,11 @@ fn an_overflowing_fog_that_leaves_channels_clear_keeps_the_other_media_in_them()
 }
 
 /// The same eye just above and just below the depth where the height fog's
-/// density overflows (700 scale heights below its reference): above, the
-/// ray is integrated; below, the fog's saturated closed form stands. Both
-/// must see the sun dimmed by the fog layer around the eye (the closed form
-/// once took the sun undimmed: a 1.1 % jump).
+/// saturated closed form takes over (σ_t = 1e20 m⁻¹, 50.66 scale heights
+/// below its reference; it once was where the density overflows, 700):
+/// above, the ray is integrated. Both must see the sun dimmed by the fog
+/// layer around the eye (the closed form once took the sun undimmed: a
+/// 1.1 % jump).
 #[test]
 fn the_saturated_fog_sees_the_sun_dimmed_by_the_other_media() {
     let centre = |z: f64| {
@@ -876,25 +877,26 @@ fn the_saturated_fog_sees_the_sun_dimmed_by_the_other_media() {
             "camera":{{"type":"perspective","position":[0,0,{z}],"orientation":{{"look_at":{{"target":[0,100,{z}]}}}},"resolution":[5,3]}},
             "lights":[{{"type":"sun","direction_to_sun":[0,0.3,1]}},{{"type":"ambient"}}],
             "media":[{{"type":"height_fog","scale_height_m":1,"mie":{{"scattering":0.01}}}},
-                     {{"type":"fog_layer","ground_height_m":-2000,"top_height_m":-600,"extinction":0.01,"min_sun_elevation_deg":0}}],
+                     {{"type":"fog_layer","ground_height_m":-2000,"top_height_m":0,"extinction":0.01,"min_sun_elevation_deg":0}}],
             "output":{{"layers":["inscatter","transmittance","error"],"pixel_filter":{{"type":"none"}}}}}}"#
         );
         check_images(&format!("eye at z = {z}"), &json);
         let (img, _) = render(&Scene::from_json_str(&json, "z").unwrap(), None).unwrap();
         img.inscatter[7][0] as f64
     };
-    let (above, below) = (centre(-699.9), centre(-700.1));
+    let (above, below) = (centre(-50.5), centre(-50.8));
     assert!((below / above - 1.0).abs() < 1e-4, "integrated {above}, saturated {below}");
 }
 
-/// Two height fogs whose densities both overflow at the eye: the ray is
-/// opaque at once, and its value is each fog's saturated closed form
+/// Two height fogs opaque at once at the eye (their densities overflow f64
+/// there): the ray is opaque at once, and its value is each fog's saturated closed form
 /// weighted by its share of the extinction at the eye,
 /// `L = Σ σ_t,i L_i / Σ σ_t,i` with `L_i = J σ_s,i/σ_t,i`. A fog `e^{50}`
 /// times denser than the other is the whole answer, whichever comes first
 /// in the scene (the first in scene order once won); two fogs of equal
-/// density and different albedo mix, and the value is the same just above
-/// the overflow threshold, where the ray is integrated.
+/// density and different albedo mix, and the value is the same where the
+/// ray is integrated, short of the extinction (1e20 m⁻¹) at which the closed
+/// form takes over.
 #[test]
 fn two_overflowing_fogs_share_the_saturated_value_by_their_extinction() {
     let centre = |z: f64, media: &str| {
@@ -937,9 +939,89 @@ fn two_overflowing_fogs_share_the_saturated_value_by_their_extinction() {
         ray / 2.0,
         "B denser, A first",
     );
-    // Equal densities: σ_t,A = 0.01, σ_t,B = 0.02.
+    // Equal densities: σ_t,A = 0.01·e^d, σ_t,B = 0.02·e^d, d scale heights
+    // down. The closed form takes over where a fog's σ_t passes 1e20 m⁻¹ (B
+    // at d = 49.96, A at 50.66); above, the ray is integrated.
     let mixed = (0.01 * mie + 0.02 * ray / 2.0) / 0.03;
     let both = format!("{},{}", fog_a(0.0), fog_b(0.0));
-    close(centre(-700.1, &both), mixed, "equal densities, saturated");
-    close(centre(-699.9, &both), mixed, "equal densities, integrated");
+    for d in [45.0, 49.9, 50.3, 51.0, 700.1] {
+        close(centre(-d, &both), mixed, &format!("equal densities, {d} scale heights down"));
+    }
+}
+
+/// The centre pixel (looking along +y from height `z`, the sun at
+/// μ = 0.3/√1.09 from the view direction, ambient 1) of a scene with these
+/// media and meshes: in-scatter, transmittance, error estimate.
+fn centre_pixel(z: f64, media: &str, meshes: &str) -> ([f64; 3], [f32; 3], [f32; 3]) {
+    let json = format!(
+        r#"{{"version":1,
+        "camera":{{"type":"perspective","position":[0,0,{z}],"orientation":{{"look_at":{{"target":[0,100,{z}]}}}},"resolution":[5,3]}},
+        "lights":[{{"type":"sun","direction_to_sun":[0,0.3,1]}},{{"type":"ambient"}}],
+        "media":[{media}],"meshes":[{meshes}],
+        "output":{{"layers":["inscatter","transmittance","error"],"pixel_filter":{{"type":"none"}}}}}}"#
+    );
+    check_images(&format!("eye at z = {z} in {media}"), &json);
+    let (img, _) = render(&Scene::from_json_str(&json, "z").unwrap(), None).unwrap();
+    (img.inscatter[7].map(f64::from), img.transmittance[7], img.error[7])
+}
+
+/// A fog dense at the eye (σ_t = 0.01·e^{d} m⁻¹, d scale heights below its
+/// reference: 2e2 … 1e24 m⁻¹) with a haze box around the eye: the in-scatter
+/// comes from the first 1/σ_t of the ray, where the fog outweighs the box,
+/// so it is the fog's saturated value with the sun dimmed by the box on its
+/// way down to the eye, `1 + p_CS(μ)·e^{−0.05·d·√1.09}`, on both sides of
+/// the 1e20 m⁻¹ at which the closed form takes over. The numeric path once
+/// gave 0 with an estimate of 0 from d = 15 (σ_t = 3e4; the box's face cut
+/// the ray, and every node of the first piece lay past the boundary layer).
+/// A red-only fog in a thin haze: green and blue are the haze's alone at any
+/// depth (they were 1.8e-40, then 0, from 100 m down: the tail's scale was
+/// the red fog's). A second fog 0.2 scale heights shallower takes its share
+/// of the saturated value whether or not it has crossed the threshold (it
+/// once jumped by 42 % between the two). And an eye so deep that the log
+/// density itself is ∞ (z = −1e306, H = 1 mm) is the fog's saturated value,
+/// not NaN.
+#[test]
+fn a_fog_dense_at_the_eye_matches_its_saturated_value_beside_other_media() {
+    let mu = 0.3 / 1.09f64.sqrt();
+    let mie = Phase::Cs(0.76).eval(mu);
+    let ray = Phase::Rayleigh.eval(mu) + 1.0;
+    let fog = r#"{"type":"height_fog","scale_height_m":1,"mie":{"scattering":0.01}}"#;
+    let haze_box = r#"{"type":"homogeneous","scattering":0.05,"bounds":{"box":{"min":[-100,-100,-200],"max":[100,100,0]}}}"#;
+    for d in [10.0, 15.0, 20.0, 30.0, 45.0, 50.0, 60.0] {
+        let (l, t, _) = centre_pixel(-d, &format!("{fog},{haze_box}"), "");
+        let want = 1.0 + mie * (-0.05 * d * 1.09f64.sqrt()).exp();
+        for c in 0..3 {
+            assert!((l[c] / want - 1.0).abs() < 1e-4, "d = {d}: L[{c}] = {}, want {want}", l[c]);
+            assert_eq!(t[c], 0.0, "d = {d}");
+        }
+    }
+    let red_fog = r#"{"type":"height_fog","scale_height_m":1,"mie":{"scattering":[0.01,0,0]}}"#;
+    let haze = r#"{"type":"homogeneous","scattering":0.001}"#;
+    for d in [30.0, 40.0, 100.0, 600.0, 800.0] {
+        let (l, _, _) = centre_pixel(-d, &format!("{red_fog},{haze}"), "");
+        let (alone, _, _) = centre_pixel(-d, haze, "");
+        assert!((l[0] / (1.0 + mie) - 1.0).abs() < 1e-4, "d = {d}: red {}", l[0]);
+        for c in 1..3 {
+            assert!(
+                (l[c] / alone[c] - 1.0).abs() < 1e-5,
+                "d = {d}: L[{c}] = {}, haze alone {}",
+                l[c],
+                alone[c]
+            );
+        }
+    }
+    let shallower =
+        r#"{"type":"height_fog","scale_height_m":1,"reference_height_m":-0.2,"rayleigh":{"scattering":0.01,"absorption":0.01}}"#;
+    let (wa, wb) = (0.01, 0.02 * (-0.2f64).exp());
+    let mixed = (wa * (1.0 + mie) + wb * ray / 2.0) / (wa + wb);
+    for z in [-699.9, -700.1, -700.3, -1000.0] {
+        let (l, _, _) = centre_pixel(z, &format!("{fog},{shallower}"), "");
+        assert!((l[0] / mixed - 1.0).abs() < 1e-4, "z = {z}: L = {}, want {mixed}", l[0]);
+    }
+    let thin_fog = r#"{"type":"height_fog","scale_height_m":0.001,"mie":{"scattering":0.01}}"#;
+    let (l, t, _) = centre_pixel(-1e306, &format!("{thin_fog},{haze}"), "");
+    assert!(
+        (l[0] / (1.0 + mie) - 1.0).abs() < 1e-4 && t[0] == 0.0,
+        "z = -1e306: L = {l:?}, T = {t:?}"
+    );
 }

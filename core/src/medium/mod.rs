@@ -321,19 +321,28 @@ impl<const C: usize> PreparedMedium<C> {
         }
     }
 
-    /// `ln σ_t(p)` in the channels where the density at `p` is beyond f64
-    /// (only a height fog far below its reference height can do that, and
-    /// only where its extinction is not 0), `None` in the others. There the
-    /// closed form, which works in log space, is the only safe evaluation,
-    /// and the log extinction says which of several such media dominates.
-    pub fn overflowing_log_extinction_at(&self, p: DVec3) -> [Option<f64>; C] {
+    /// `ln σ_t(p)` of a height fog in the channels where its extinction is not
+    /// 0, at any height (the log density clamped to `f64::MAX`, so never ∞ or
+    /// NaN), `None` in the others and for the other media.
+    pub fn height_fog_log_extinction_at(&self, p: DVec3) -> [Option<f64>; C] {
         match self {
             PreparedMedium::HeightFog(m) => {
-                let log_density = -(p.z - m.reference_height) / m.scale_height;
-                m.extinction.map(|b| (log_density > 700.0 && b > 0.0).then(|| b.ln() + log_density))
+                let log_density = (-(p.z - m.reference_height) / m.scale_height).min(f64::MAX);
+                m.extinction.map(|b| (b > 0.0).then(|| b.ln() + log_density))
             }
             _ => [None; C],
         }
+    }
+
+    /// The channels in which a height fog is opaque at once at `p`: σ_t >
+    /// 1e20 m⁻¹, a 1/e length far below any length a scene holds (the density
+    /// itself overflows f64 only some 700 scale heights below the reference
+    /// height, much deeper). There the fog's saturated closed form, which
+    /// works in log space, is the exact value; a numeric path would have to
+    /// find a layer thinner than 1e-20 m.
+    pub fn opaque_at(&self, p: DVec3) -> [bool; C] {
+        self.height_fog_log_extinction_at(p)
+            .map(|l| l.is_some_and(|l| l > OPAQUE_EXTINCTION.ln()))
     }
 
     /// The medium's name for reports.
@@ -347,6 +356,10 @@ impl<const C: usize> PreparedMedium<C> {
         }
     }
 }
+
+/// The extinction, m⁻¹, beyond which a height fog is taken as opaque at once
+/// at a view ray's origin ([`PreparedMedium::opaque_at`]).
+pub const OPAQUE_EXTINCTION: f64 = 1e20;
 
 /// `σ_s·(L_amb + Σ_k p(μ_k)·E_k·T_k)`: the single-scattering source of a medium
 /// with one phase function at a point (Klassen eq 1.11's integrand without the

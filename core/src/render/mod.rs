@@ -1325,28 +1325,32 @@ fn suns_dimmed_by_others<const C: usize>(lights: &LightSet<C>, media: &[Prepared
     Some(dimmed)
 }
 
-/// An eye inside media whose density overflows f64 there (height fogs far
-/// below their reference heights; `overflowing` lists them with `ln σ_t` at
-/// the eye in the channels where they overflow). In such a channel the view
-/// ray is opaque at once: `L = Σ_i σ_s,i J_i / Σ_i σ_t,i` at the eye, which
-/// is each fog's own saturated closed form (`J_i σ_s,i/σ_t,i`, `T = 0`)
-/// weighted by its share of the extinction there, `σ_t,i / Σ σ_t` (computed
-/// from the log extinctions, so the denser fog wins whatever the scene
-/// order; the media of finite density add nothing against an infinite
-/// extinction). A channel no overflowing medium dims (extinction 0 there, so
-/// no scattering either) sees the other media alone, as if the fogs were not
-/// on the ray. The suns reach the eye dimmed by the other media, as in
-/// [`integrate_media`]'s integrand.
+/// An eye inside height fogs opaque at once there (σ_t > 1e20 m⁻¹, far
+/// below their reference heights; `opaque` lists them with the channels
+/// where they are). In such a channel `L = Σ_i σ_s,i J_i / Σ_i σ_t,i` at the
+/// eye and `T = 0`: each height fog's own saturated closed form
+/// (`J_i σ_s,i/σ_t,i`) weighted by its share of the extinction there,
+/// `σ_t,i / Σ σ_t`, computed from the log extinctions (the densities may
+/// overflow f64): the denser fog wins whatever the scene order, and a fog
+/// just short of the threshold takes its share too (so nothing jumps where
+/// one fog crosses it before another). The other media's extinctions are
+/// finite and small against 1e20 m⁻¹ and add nothing. A channel no opaque
+/// fog dims (extinction 0 there, so no scattering either) sees the other
+/// media alone, as if the fogs were not on the ray. The suns reach the eye
+/// dimmed by the other media, as in [`integrate_media`]'s integrand.
 fn saturated_at_eye<const C: usize>(
     ray: &ViewRay,
     media: &[PreparedMedium<C>],
     lights: &LightSet<C>,
     tolerance: f64,
-    overflowing: &[(usize, [Option<f64>; C])],
+    opaque: &[(usize, [bool; C])],
 ) -> (RayResult<C>, bool) {
-    let saturated: Vec<(RayResult<C>, [Option<f64>; C])> = overflowing
+    let fogs: Vec<(RayResult<C>, [Option<f64>; C])> = media
         .iter()
-        .map(|&(i, log_extinction)| {
+        .enumerate()
+        .map(|(i, m)| (i, m.height_fog_log_extinction_at(ray.origin)))
+        .filter(|(_, l)| l.iter().any(Option::is_some))
+        .map(|(i, log_extinction)| {
             let own = match suns_dimmed_by_others(lights, media, i, ray.origin) {
                 Some(dimmed) => media[i].closed_form(ray, &dimmed),
                 None => media[i].closed_form(ray, lights),
@@ -1354,43 +1358,107 @@ fn saturated_at_eye<const C: usize>(
             (own, log_extinction)
         })
         .collect();
+    let saturated = |c: usize| opaque.iter().any(|(_, o)| o[c]);
     let others: Vec<PreparedMedium<C>> = media
         .iter()
         .enumerate()
-        .filter(|(j, _)| overflowing.iter().all(|(i, _)| i != j))
+        .filter(|(j, _)| opaque.iter().all(|(i, _)| i != j))
         .map(|(_, m)| m.clone())
         .collect();
-    let any_clear = (0..C).any(|c| saturated.iter().all(|(_, o)| o[c].is_none()));
-    let (mut out, converged) = if any_clear && !others.is_empty() {
+    let (mut out, converged) = if (0..C).any(|c| !saturated(c)) && !others.is_empty() {
         integrate_media(ray, &others, lights, tolerance)
     } else {
         (RayResult::vacuum(), true)
     };
-    for c in 0..C {
-        let densest = saturated.iter().filter_map(|(_, o)| o[c]).fold(f64::NEG_INFINITY, f64::max);
-        if densest == f64::NEG_INFINITY {
-            continue;
-        }
+    for c in (0..C).filter(|&c| saturated(c)) {
+        let densest = fogs.iter().filter_map(|(_, l)| l[c]).fold(f64::NEG_INFINITY, f64::max);
         let (mut inscatter, mut error, mut weights) = (0.0, 0.0, 0.0);
-        for (own, log_extinction) in &saturated {
+        for (own, log_extinction) in &fogs {
             if let Some(l) = log_extinction[c] {
-                if l == densest {
-                    out.sun_transmittance[c] = own.sun_transmittance[c];
-                }
-                let w = (l - densest).exp();
+                // (Equal logs, also both f64::MAX: weight 1, never exp(∞ − ∞).)
+                let w = if l == densest { 1.0 } else { (l - densest).exp() };
                 inscatter += w * own.inscatter[c];
                 error += w * own.error[c];
                 weights += w;
             }
         }
         out.inscatter[c] = inscatter / weights;
-        out.error[c] = error / weights + medium::rounding_bound(out.inscatter[c], 4.0 * saturated.len() as f64);
+        out.error[c] = error / weights + medium::rounding_bound(out.inscatter[c], 4.0 * fogs.len() as f64);
         out.transmittance[c] = 0.0;
     }
-    for (own, _) in &saturated {
+    for (own, _) in &fogs {
         out.rel_bound = out.rel_bound.max(own.rel_bound);
     }
     (out, converged)
+}
+
+/// Cuts for a boundary layer in the piece `[a, b]` of a view ray (`b` may be
+/// ∞; then `first_step`, > 0, is the length to try first): where the optical
+/// depth of a channel still lit at `a` (τ(a) < 40) rises by more than 64
+/// across the piece, the points where the steepest such channel's has risen
+/// by 4^k, k = −3 … 3, found by bisection on the closed-form τ (monotone in
+/// the distance; each point to 1 % of its distance from `a`). Without them a
+/// G7–K15 rule over a piece much longer than the layer (an eye in a fog of
+/// σ_t = 10⁴ m⁻¹ with a haze box's face 10 m away, or a ray into a fog whose
+/// density grows e-fold in a millimetre) sees e^{−τ}·σ ≈ 0 at every node:
+/// both rules agree on 0, and the layer's light is lost with an error
+/// estimate of 0. Between the cuts the optical depth changes by a factor of
+/// 4 or by at most 48, which the rule resolves; beyond the last that channel
+/// is dark (e^{−64}). No cuts in gentler pieces.
+fn depth_level_cuts<const C: usize>(total_tau: &impl Fn(f64) -> [f64; C], a: f64, b: f64, first_step: f64) -> Vec<f64> {
+    const LEVELS: [f64; 7] = [1.0 / 64.0, 1.0 / 16.0, 0.25, 1.0, 4.0, 16.0, 64.0];
+    let base = total_tau(a);
+    let lit: Vec<usize> = (0..C).filter(|&c| base[c] < 40.0).collect();
+    if lit.is_empty() {
+        return Vec::new();
+    }
+    let rise = |s: f64| {
+        let t = total_tau(s);
+        lit.iter().map(|&c| t[c] - base[c]).fold(0.0_f64, f64::max)
+    };
+    let mut hi = b;
+    if !b.is_finite() {
+        // An upper bracket: first_step·4^k past `a`.
+        let mut step = first_step;
+        hi = a + step;
+        while hi.is_finite() && rise(hi) <= 64.0 && step < 1e300 {
+            step *= 4.0;
+            hi = a + step;
+        }
+    }
+    if !hi.is_finite() || rise(hi) <= 64.0 {
+        return Vec::new();
+    }
+    // The search runs on the distance d from `a`: by factors of 16 down from
+    // the bracket while nothing below is known, geometric while the bracket
+    // spans more than a factor of 4, then halving.
+    let mut cuts = Vec::with_capacity(LEVELS.len());
+    let (span, mut d_lo) = (hi - a, 0.0_f64);
+    for level in LEVELS {
+        let (mut l, mut h) = (d_lo, span);
+        for _ in 0..400 {
+            let m = if l == 0.0 {
+                h / 16.0
+            } else if h > 4.0 * l {
+                (l * h).sqrt()
+            } else {
+                0.5 * (l + h)
+            };
+            if m <= l || m >= h || h - l <= 0.01 * h {
+                break;
+            }
+            if rise(a + m) < level {
+                l = m;
+            } else {
+                h = m;
+            }
+        }
+        if h > d_lo && h < span {
+            cuts.push(a + h);
+            d_lo = h;
+        }
+    }
+    cuts
 }
 
 /// Several media on one ray: `L = ∫ Σ S_m e^{−Σ τ_m}`, adaptive G7–K15 over
@@ -1402,14 +1470,14 @@ fn integrate_media<const C: usize>(
     lights: &LightSet<C>,
     tolerance: f64,
 ) -> (RayResult<C>, bool) {
-    let overflowing: Vec<(usize, [Option<f64>; C])> = media
+    let opaque: Vec<(usize, [bool; C])> = media
         .iter()
-        .map(|m| m.overflowing_log_extinction_at(ray.origin))
+        .map(|m| m.opaque_at(ray.origin))
         .enumerate()
-        .filter(|(_, o)| o.iter().any(Option::is_some))
+        .filter(|(_, o)| o.contains(&true))
         .collect();
-    if !overflowing.is_empty() {
-        return saturated_at_eye(ray, media, lights, tolerance, &overflowing);
+    if !opaque.is_empty() {
+        return saturated_at_eye(ray, media, lights, tolerance, &opaque);
     }
     let total_tau = |s: f64| {
         let mut t = [0.0; C];
@@ -1461,6 +1529,36 @@ fn integrate_media<const C: usize>(
     cuts.retain(|c| *c <= ray.s_max);
     cuts.sort_by(f64::total_cmp);
     cuts.dedup();
+    // Optically thick pieces get cuts where their steepest channel's optical
+    // depth has risen by 1, 4, 16 and 64 (see `depth_level_cuts`).
+    let mut levels = Vec::new();
+    for w in cuts.windows(2) {
+        levels.extend(depth_level_cuts(&total_tau, w[0], w[1], 0.0));
+    }
+    let tail = !ray.s_max.is_finite();
+    // The tail's own scale is 1/(the fastest rate of extinction at its start),
+    // which resolves that channel's fall. Where the channels' rates differ by
+    // more than 64× (a dense red-only fog in a thin haze), one scale cannot
+    // serve all: the fast channel's fall gets level cuts first, and the tail
+    // then starts where that channel is dark, at the rate of the channels
+    // still lit.
+    let tail_rates = |a: f64| {
+        let (tau1, tau0) = (total_tau(a + 1.0), total_tau(a));
+        let lit: Vec<f64> = (0..C).filter(|&c| tau0[c] < 40.0).map(|c| tau1[c] - tau0[c]).collect();
+        let fastest = lit.iter().copied().fold(0.0_f64, f64::max);
+        let slowest = lit.iter().copied().filter(|r| *r > 0.0).fold(f64::INFINITY, f64::min);
+        (fastest, slowest)
+    };
+    if tail {
+        let a = *cuts.last().unwrap_or(&0.0);
+        let (fastest, slowest) = tail_rates(a);
+        if fastest > 64.0 * slowest {
+            levels.extend(depth_level_cuts(&total_tau, a, f64::INFINITY, 1.0 / fastest));
+        }
+    }
+    cuts.extend(levels);
+    cuts.sort_by(f64::total_cmp);
+    cuts.dedup();
     let mut value = [0.0; C];
     let mut error = [0.0; C];
     let mut converged = true;
@@ -1468,17 +1566,25 @@ fn integrate_media<const C: usize>(
     // pass over every piece estimates its size, and each piece (the infinite
     // tail counts as one) then gets an equal share of the absolute budget, so a
     // negligible piece is not refined to relative accuracy of its own.
-    let tail = !ray.s_max.is_finite();
     let (tail_a, tail_scale) = {
         let a = *cuts.last().unwrap_or(&0.0);
-        let (tau1, tau0) = (total_tau(a + 1.0), total_tau(a));
-        let rate = (0..C).map(|c| tau1[c] - tau0[c]).fold(0.0_f64, f64::max).max(1e-12);
-        (a, 1.0 / rate)
+        let (fastest, _) = tail_rates(a);
+        let rate = if fastest > 0.0 {
+            fastest
+        } else {
+            let (tau1, tau0) = (total_tau(a + 1.0), total_tau(a));
+            (0..C).map(|c| tau1[c] - tau0[c]).fold(0.0_f64, f64::max)
+        };
+        (a, 1.0 / rate.max(1e-12))
     };
     let tail_integrand = |u: f64| {
+        if u >= 1.0 {
+            return [0.0; C];
+        }
         let s = tail_a + tail_scale * u / (1.0 - u);
         let jac = tail_scale / ((1.0 - u) * (1.0 - u));
-        integrand(s).map(|v| v * jac)
+        // (0 where the integrand is, also where the Jacobian has overflowed.)
+        integrand(s).map(|v| if v == 0.0 { 0.0 } else { v * jac })
     };
     let mut coarse = [0.0f64; C];
     for w in cuts.windows(2) {
