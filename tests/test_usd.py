@@ -1202,6 +1202,33 @@ def test_an_instancer_among_its_own_prototypes_is_named(tmp_path: Path) -> None:
     assert "among its own prototypes" in str(e.value)
 
 
+def test_a_singular_nested_instancer_is_named(tmp_path: Path) -> None:
+    """A third-level instancer whose own transform is singular (a scale of 0) is named with
+    ``xformOpOrder``, also when a lamp placed before it in the outer prototype left its
+    instance's matrix behind (the error once named the lamp of the innermost prototype)."""
+    for lamp_first in (False, True):
+        stage = _stage(tmp_path, name=f"singular_{lamp_first}.usda")
+        UsdGeom.Xform.Define(stage, "/World/A/Protos/T")
+        if lamp_first:
+            UsdLux.SphereLight.Define(stage, "/World/A/Protos/T/AFirst")
+        UsdLux.SphereLight.Define(stage, "/World/Lamps/Fixture/Lamp")
+        levels = {
+            "/World/A": "/World/A/Protos/T",
+            "/World/A/Protos/T/B": "/World/A/Protos/T/B/Protos/U",
+            "/World/A/Protos/T/B/Protos/U/C": "/World/Lamps/Fixture",
+        }
+        for path, proto in levels.items():
+            inst = UsdGeom.PointInstancer.Define(stage, path)
+            inst.CreatePrototypesRel().SetTargets([Sdf.Path(proto)])
+            inst.CreateProtoIndicesAttr([0])
+            inst.CreatePositionsAttr([Gf.Vec3f(0, 0, 1)])
+        UsdGeom.XformCommonAPI(stage.GetPrimAtPath("/World/A/Protos/T/B/Protos/U/C")).SetScale(Gf.Vec3f(0, 1, 1))
+        with pytest.raises(UsdSceneError) as e:
+            convert_stage(stage)
+        where = (e.value.prim, e.value.attribute)
+        assert where == ("/World/A/Protos/T/B/Protos/U/C", "xformOpOrder"), (lamp_first, str(e.value))
+
+
 @pytest.mark.parametrize("mpu", [1e-300, 1e-10, 2e9, 1e300])
 def test_meters_per_unit_out_of_range_is_named(tmp_path: Path, mpu: float) -> None:
     """1e-300 was blamed on a prim's xformOpOrder, 1e300 on camera.clip_start_m (a field

@@ -853,6 +853,8 @@ class _Converter:
                 for q, type_name, rel in contents[k]:
                     m = rel * x * base
                     if type_name == "PointInstancer":
+                        # (Its plan's checks name prims from the stage, not from this instance.)
+                        self.instance_matrix = None
                         got = self.point_instancer(q, m, f"{suffix}_{i}", (*outer, path))
                         nested += len(got[0]) + len(got[1])
                         lights += got[0]
