@@ -1530,7 +1530,7 @@ fn integrate_media<const C: usize>(
     cuts.sort_by(f64::total_cmp);
     cuts.dedup();
     // Optically thick pieces get cuts where their steepest channel's optical
-    // depth has risen by 1, 4, 16 and 64 (see `depth_level_cuts`).
+    // depth has risen by 4^k, k = −3 … 3 (see `depth_level_cuts`).
     let mut levels = Vec::new();
     for w in cuts.windows(2) {
         levels.extend(depth_level_cuts(&total_tau, w[0], w[1], 0.0));

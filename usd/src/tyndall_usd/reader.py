@@ -208,6 +208,12 @@ def _names(prim: Usd.Prim, name: str, time: Usd.TimeCode) -> list[str] | None:
 # ------------------------------------------------------------------ the converter
 
 
+#: A PointInstancer's prototype indices, drawn mask and instance transforms (in its own
+#: space), and, by prototype index, what the prototype holds: (prim, type name, transform
+#: below the prototype's root).
+_InstancerPlan = tuple[list[int], list[bool], list[Gf.Matrix4d], dict[int, list[tuple[Usd.Prim, str, Gf.Matrix4d]]]]
+
+
 class _Converter:
     def __init__(self, stage: Usd.Stage, time: Usd.TimeCode) -> None:
         self.stage = stage
@@ -234,9 +240,7 @@ class _Converter:
         self.instance_matrix: Gf.Matrix4d | None = None
         #: Each PointInstancer's instances and prototypes' contents (:meth:`instancer_plan`),
         #: and each prototype mesh converted once, by path.
-        self.instancer_plans: dict[
-            str, tuple[list[int], list[bool], list[Gf.Matrix4d], dict[int, list[tuple[Usd.Prim, str, Gf.Matrix4d]]]]
-        ] = {}
+        self.instancer_plans: dict[str, _InstancerPlan] = {}
         self.prototype_meshes: dict[Sdf.Path, dict[str, Any] | None] = {}
         if up == UsdGeom.Tokens.y:
             self.notes.append("Y-up stage: rotated +90° about X into Tyndall's Z-up world (as Blender imports it)")
@@ -897,9 +901,7 @@ class _Converter:
             )
         return lights, meshes, light_prims
 
-    def instancer_plan(
-        self, prim: Usd.Prim
-    ) -> tuple[list[int], list[bool], list[Gf.Matrix4d], dict[int, list[tuple[Usd.Prim, str, Gf.Matrix4d]]]]:
+    def instancer_plan(self, prim: Usd.Prim) -> _InstancerPlan:
         """A PointInstancer's instances (prototype indices, drawn mask, transforms in its own
         space) and what each prototype it uses holds, with its transform below the
         prototype's root: the lamps, meshes and nested PointInstancers (read once, however
