@@ -889,8 +889,8 @@ fn the_saturated_fog_sees_the_sun_dimmed_by_the_other_media() {
 }
 
 /// Two height fogs opaque at once at the eye (their densities overflow f64
-/// there): the ray is opaque at once, and its value is each fog's saturated closed form
-/// weighted by its share of the extinction at the eye,
+/// there): the ray's value is each fog's saturated closed form weighted by
+/// its share of the extinction at the eye,
 /// `L = Σ σ_t,i L_i / Σ σ_t,i` with `L_i = J σ_s,i/σ_t,i`. A fog `e^{50}`
 /// times denser than the other is the whole answer, whichever comes first
 /// in the scene (the first in scene order once won); two fogs of equal
@@ -900,17 +900,9 @@ fn the_saturated_fog_sees_the_sun_dimmed_by_the_other_media() {
 #[test]
 fn two_overflowing_fogs_share_the_saturated_value_by_their_extinction() {
     let centre = |z: f64, media: &str| {
-        let json = format!(
-            r#"{{"version":1,
-            "camera":{{"type":"perspective","position":[0,0,{z}],"orientation":{{"look_at":{{"target":[0,100,{z}]}}}},"resolution":[5,3]}},
-            "lights":[{{"type":"sun","direction_to_sun":[0,0.3,1]}},{{"type":"ambient"}}],
-            "media":[{media}],
-            "output":{{"layers":["inscatter","transmittance","error"],"pixel_filter":{{"type":"none"}}}}}}"#
-        );
-        check_images(&format!("eye at z = {z} in {media}"), &json);
-        let (img, _) = render(&Scene::from_json_str(&json, "z").unwrap(), None).unwrap();
-        assert_eq!(img.transmittance[7], [0.0; 3], "{media}: opaque at the eye");
-        img.inscatter[7].map(f64::from)
+        let (l, t, _) = centre_pixel(z, media, "");
+        assert_eq!(t, [0.0; 3], "{media}: opaque at the eye");
+        l
     };
     // The sun is at μ = 0.3/√1.09 from the centre pixel's view direction.
     let mie = Phase::Cs(0.76).eval(0.3 / 1.09f64.sqrt()) + 1.0;
