@@ -1000,7 +1000,7 @@ def _nested_rig(stage: Usd.Stage, explicit: bool) -> None:
         (Gf.Vec3f(1, 0.2, 0), Gf.Quath(0, 1, 0, 0), Gf.Vec3f(0.5, 0.5, 0.5)),
     ]
 
-    def truss(root: str, inner_place: str) -> None:
+    def truss(root: str) -> None:
         t = UsdGeom.Xform.Define(stage, root)
         _xform(t.GetPrim(), (0, 0, 0.3), (0, 0, 10))
         bar = UsdGeom.Xform.Define(stage, root + "/Bar")
@@ -1009,9 +1009,9 @@ def _nested_rig(stage: Usd.Stage, explicit: bool) -> None:
             lamps = UsdGeom.Xform.Define(stage, root + "/Bar/Lamps")
             _xform(lamps.GetPrim(), (0, 0.1, 0), (0, 0, -15))
             for j in (0, 2):
-                place = UsdGeom.Xform.Define(stage, f"{root}/Bar/Lamps/{inner_place}{j}")
+                place = UsdGeom.Xform.Define(stage, f"{root}/Bar/Lamps/Place{j}")
                 place.AddTransformOp().Set(_instance_matrix(*inner_places[j]))
-                _fixture(stage, f"{root}/Bar/Lamps/{inner_place}{j}/Fixture")
+                _fixture(stage, f"{root}/Bar/Lamps/Place{j}/Fixture")
             return
         inner = UsdGeom.PointInstancer.Define(stage, root + "/Bar/Lamps")
         _xform(inner.GetPrim(), (0, 0.1, 0), (0, 0, -15))
@@ -1027,9 +1027,9 @@ def _nested_rig(stage: Usd.Stage, explicit: bool) -> None:
         for i, place_i in enumerate(outer_places):
             place = UsdGeom.Xform.Define(stage, f"/World/Rigs/Place{i}")
             place.AddTransformOp().Set(_instance_matrix(*place_i))
-            truss(f"/World/Rigs/Place{i}/Truss", "Place")
+            truss(f"/World/Rigs/Place{i}/Truss")
         return
-    truss("/World/Rigs/Protos/Truss", "Place")
+    truss("/World/Rigs/Protos/Truss")
     inst = UsdGeom.PointInstancer(outer)
     inst.CreatePrototypesRel().SetTargets([Sdf.Path("/World/Rigs/Protos/Truss")])
     inst.CreateProtoIndicesAttr([0, 0])
