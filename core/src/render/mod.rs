@@ -1542,19 +1542,24 @@ fn integrate_media<const C: usize>(
     // serve all: the fast channel's fall gets level cuts first, and the tail
     // then starts where that channel is dark, at the rate of the channels
     // still lit.
+    // (fastest rate among the lit channels, slowest positive one among them,
+    // fastest among all), per m, at `a`.
     let tail_rates = |a: f64| {
         let (tau1, tau0) = (total_tau(a + 1.0), total_tau(a));
         let lit: Vec<f64> = (0..C).filter(|&c| tau0[c] < 40.0).map(|c| tau1[c] - tau0[c]).collect();
         let fastest = lit.iter().copied().fold(0.0_f64, f64::max);
         let slowest = lit.iter().copied().filter(|r| *r > 0.0).fold(f64::INFINITY, f64::min);
-        (fastest, slowest)
+        let any = (0..C).map(|c| tau1[c] - tau0[c]).fold(0.0_f64, f64::max);
+        (fastest, slowest, any)
     };
+    let mut tail_start = None;
     if tail {
         let a = *cuts.last().unwrap_or(&0.0);
-        let (fastest, slowest) = tail_rates(a);
-        if fastest > 64.0 * slowest {
-            levels.extend(depth_level_cuts(&total_tau, a, f64::INFINITY, 1.0 / fastest));
+        let rates = tail_rates(a);
+        if rates.0 > 64.0 * rates.1 {
+            levels.extend(depth_level_cuts(&total_tau, a, f64::INFINITY, 1.0 / rates.0));
         }
+        tail_start = Some((a, rates));
     }
     cuts.extend(levels);
     cuts.sort_by(f64::total_cmp);
@@ -1568,13 +1573,12 @@ fn integrate_media<const C: usize>(
     // negligible piece is not refined to relative accuracy of its own.
     let (tail_a, tail_scale) = {
         let a = *cuts.last().unwrap_or(&0.0);
-        let (fastest, _) = tail_rates(a);
-        let rate = if fastest > 0.0 {
-            fastest
-        } else {
-            let (tau1, tau0) = (total_tau(a + 1.0), total_tau(a));
-            (0..C).map(|c| tau1[c] - tau0[c]).fold(0.0_f64, f64::max)
+        // (The rates at the tail's start unless level cuts moved it.)
+        let (fastest, _, any) = match tail_start {
+            Some((a0, rates)) if a0 == a => rates,
+            _ => tail_rates(a),
         };
+        let rate = if fastest > 0.0 { fastest } else { any };
         (a, 1.0 / rate.max(1e-12))
     };
     let tail_integrand = |u: f64| {
