@@ -1102,6 +1102,22 @@ def test_a_point_instancers_prototypes_drawn_as_usd_imaging_draws_them(tmp_path:
         inst.CreatePositionsAttr([Gf.Vec3f(-1, 0, 4), Gf.Vec3f(1, 0, 4)])
         conv = convert_stage(stage)
         assert [light["position"] for light in conv.scene["lights"]] == [[-1.0, 0.0, 4.0], [1.0, 0.0, 4.0]], layout
+        # Drawn by its instances, so not listed as an invisible prim left out.
+        assert all(d["prim"] != "/World/Protos/P/Lamp" for d in conv.skipped), (layout, conv.skipped)
+    # A hidden prototype no drawn instance places is listed as left out.
+    stage = _stage(tmp_path, name="unplaced.usda")
+    inst = UsdGeom.PointInstancer.Define(stage, "/World/PI")
+    UsdGeom.Scope.Define(stage, "/World/Protos").MakeInvisible()
+    UsdLux.SphereLight.Define(stage, "/World/Protos/P/Lamp")
+    UsdLux.SphereLight.Define(stage, "/World/Protos/Q/Lamp")
+    inst.CreatePrototypesRel().SetTargets([Sdf.Path("/World/Protos/P"), Sdf.Path("/World/Protos/Q")])
+    inst.CreateProtoIndicesAttr([0, 1])
+    inst.CreatePositionsAttr([Gf.Vec3f(-1, 0, 4), Gf.Vec3f(1, 0, 4)])
+    inst.CreateInvisibleIdsAttr([1])
+    conv = convert_stage(stage)
+    assert [light["position"] for light in conv.scene["lights"]] == [[-1.0, 0.0, 4.0]]
+    assert {"prim": "/World/Protos/Q/Lamp", "reason": "invisible SphereLight"} in conv.skipped
+    assert all(d["prim"] != "/World/Protos/P/Lamp" for d in conv.skipped), conv.skipped
     stage = _stage(tmp_path, name="moving.usda")
     inst = UsdGeom.PointInstancer.Define(stage, "/World/PI")
     UsdLux.SphereLight.Define(stage, "/World/PI/Protos/Lamp")

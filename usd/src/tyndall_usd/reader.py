@@ -242,6 +242,11 @@ class _Converter:
         #: and each prototype mesh converted once, by path.
         self.instancer_plans: dict[str, _InstancerPlan] = {}
         self.prototype_meshes: dict[Sdf.Path, dict[str, Any] | None] = {}
+        #: Prims a PointInstancer drew at one of its instances at least once: a hidden
+        #: container of prototypes does not make them prims left out.
+        self.placed: set[str] = set()
+        #: The entries of ``skipped`` for prims invisible at their own place on the stage.
+        self.invisible_in_place: list[dict[str, str]] = []
         if up == UsdGeom.Tokens.y:
             self.notes.append("Y-up stage: rotated +90° about X into Tyndall's Z-up world (as Blender imports it)")
         if mpu != 1.0:
@@ -778,6 +783,7 @@ class _Converter:
         img = UsdGeom.Imageable(prim)
         if img and img.ComputeVisibility(self.time) == UsdGeom.Tokens.invisible:
             self.skip(prim, f"invisible {type_name}")
+            self.invisible_in_place.append(self.skipped[-1])
             return False
         if img and img.ComputePurpose() in (UsdGeom.Tokens.guide, UsdGeom.Tokens.proxy):
             self.skip(prim, f"{type_name} with purpose {img.ComputePurpose()}")
@@ -866,6 +872,7 @@ class _Converter:
                         light_prims += got[2]
                         continue
                     self.instance_matrix = m
+                    self.placed.add(str(q.GetPath()))
                     name = f"{q.GetName()}{suffix}_{i}"
                     if type_name == "Mesh" and q.GetPath() in self.prototype_meshes:
                         # The same points and triangles: only the transform differs.
@@ -1080,8 +1087,12 @@ class _Converter:
                 "Blender export: enableColorTemperature is written for every light, so it is ignored where "
                 f"colorTemperature is not authored (no tint): {', '.join(dict.fromkeys(self.untinted))}"
             )
-        # (A PointInstancer's instances repeat their prototype's notes and skips.)
-        skipped = [dict(t) for t in dict.fromkeys(tuple(d.items()) for d in self.skipped)]
+        # (A PointInstancer's instances repeat their prototype's notes and skips.) A prototype
+        # under a hidden container is drawn where its instancer places it: it was left out
+        # only at its own place, so it is not listed as an invisible prim.
+        drawn_elsewhere = {id(d) for d in self.invisible_in_place if d["prim"] in self.placed}
+        unique = dict.fromkeys(tuple(d.items()) for d in self.skipped if id(d) not in drawn_elsewhere)
+        skipped = [dict(t) for t in unique]
         return Conversion(scene, skipped, list(dict.fromkeys(self.notes)), sky, light_prims)
 
     def render_settings(self, prims: list[Usd.Prim]) -> Usd.Prim | None:
