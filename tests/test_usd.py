@@ -485,7 +485,7 @@ def _bad(tmp_path: Path, case: str) -> Usd.Stage:
     elif case == "radius":
         light.CreateRadiusAttr(-1.0)
     elif case == "cone":
-        UsdLux.ShapingAPI.Apply(light.GetPrim()).CreateShapingConeAngleAttr(200.0)
+        UsdLux.ShapingAPI.Apply(light.GetPrim()).CreateShapingConeAngleAttr(0.01)
     elif case == "softness":
         UsdLux.ShapingAPI.Apply(light.GetPrim()).CreateShapingConeSoftnessAttr(1.5)
         light.GetPrim().GetAttribute("inputs:shaping:cone:angle").Set(30.0)
@@ -1266,3 +1266,228 @@ def test_non_uniform_scale_of_a_shaped_light_is_noted(tmp_path: Path) -> None:
     conv = convert_stage(stage)
     assert conv.scene["lights"][0]["type"] == "spot"
     assert any(n.startswith("/World/Spot: non-uniform scale (2, 1, 1)") for n in conv.notes), conv.notes
+
+
+def test_a_mesh_light_is_listed_and_kept_as_an_occluder(tmp_path: Path) -> None:
+    """A mesh with MeshLightAPI emits in Hydra: Tyndall cannot, so it says so, and keeps the
+    mesh as the occluder it also is. An authored subdivision scheme is noted (the cage is
+    used); the catmullClark fallback on an ordinary mesh is not."""
+    stage = _stage(tmp_path)
+    quad = ([(-1, -1, 3), (1, -1, 3), (1, 1, 3), (-1, 1, 3)], [4], [0, 1, 2, 3])
+    for path in ("/World/Panel", "/World/Plain", "/World/Smooth"):
+        mesh = UsdGeom.Mesh.Define(stage, path)
+        mesh.CreatePointsAttr(quad[0])
+        mesh.CreateFaceVertexCountsAttr(quad[1])
+        mesh.CreateFaceVertexIndicesAttr(quad[2])
+    UsdLux.MeshLightAPI.Apply(stage.GetPrimAtPath("/World/Panel"))
+    UsdGeom.Mesh(stage.GetPrimAtPath("/World/Smooth")).CreateSubdivisionSchemeAttr(UsdGeom.Tokens.catmullClark)
+    conv = convert_stage(stage)
+    assert sorted(m["name"] for m in conv.scene["meshes"]) == ["Panel", "Plain", "Smooth"]
+    assert conv.scene["lights"] == []
+    assert [d["prim"] for d in conv.skipped] == ["/World/Panel"]
+    assert "emission is not supported" in conv.skipped[0]["reason"]
+    subdivided = [n for n in conv.notes if "subdivisionScheme" in n]
+    assert len(subdivided) == 1 and subdivided[0].startswith("/World/Smooth: ")
+
+
+def test_light_and_shadow_linking_are_noted_not_dropped(tmp_path: Path) -> None:
+    """A light-linking or shadow-linking collection that leaves something out cannot be
+    applied (every medium is lit, every mesh shadows): the light is kept and the report says
+    so. Collections left at their fallback (everything) give no note."""
+    stage = _stage(tmp_path)
+    wall = UsdGeom.Mesh.Define(stage, "/World/Wall")
+    wall.CreatePointsAttr([(-1, 1, 0), (1, 1, 0), (1, 1, 3)])
+    wall.CreateFaceVertexCountsAttr([3])
+    wall.CreateFaceVertexIndicesAttr([0, 1, 2])
+    linked = UsdLux.SphereLight.Define(stage, "/World/Linked")
+    lux = UsdLux.LightAPI(linked.GetPrim())
+    lux.GetShadowLinkCollectionAPI().CreateIncludeRootAttr(False)
+    lux.GetLightLinkCollectionAPI().CreateExcludesRel().AddTarget("/World/Wall")
+    UsdLux.SphereLight.Define(stage, "/World/Plain")
+    conv = convert_stage(stage)
+    assert [light["name"] for light in conv.scene["lights"]] == ["Linked", "Plain"]
+    linking = sorted(n for n in conv.notes if "linking" in n)
+    assert len(linking) == 2 and all(n.startswith("/World/Linked: ") for n in linking), linking
+    assert "light linking collection (lightLink)" in linking[0]
+    assert "shadow linking collection (shadowLink)" in linking[1]
+
+
+def test_a_relative_ies_property_resolves_against_the_layer_that_wrote_it(tmp_path: Path) -> None:
+    """``tyndall:ies:file`` authored in a referenced asset names a file beside that asset,
+    not beside the shot that references it (a stray profile of the same name beside the
+    shot must not be picked up)."""
+    (tmp_path / "assets").mkdir()
+    (tmp_path / "shot").mkdir()
+    (tmp_path / "assets" / "beam.ies").write_text("IESNA:LM-63-2002\nTILT=NONE\n")
+    (tmp_path / "shot" / "beam.ies").write_text("IESNA:LM-63-2002\nTILT=NONE\n")
+    asset = Usd.Stage.CreateNew(str(tmp_path / "assets" / "lamp.usda"))
+    lamp = UsdLux.SphereLight.Define(asset, "/Lamp")
+    lamp.GetPrim().CreateAttribute("tyndall:ies:file", Sdf.ValueTypeNames.String).Set("beam.ies")
+    asset.SetDefaultPrim(lamp.GetPrim())
+    asset.Save()
+    shot = _stage(tmp_path / "shot")
+    shot.DefinePrim("/World/Lamp").GetReferences().AddReference("../assets/lamp.usda")
+    shot.Save()
+    conv = convert_stage(str(tmp_path / "shot" / "s.usda"))
+    assert conv.scene["lights"][0]["ies"]["file"] == str((tmp_path / "assets" / "beam.ies").resolve())
+
+
+def _fov_deg(camera: dict[str, Any]) -> tuple[float, float]:
+    """Horizontal and vertical field of view of a converted camera, in degrees."""
+    w, h = camera["resolution"]
+    fit = camera["sensor_fit"]
+    side = camera["sensor_width_mm"] if fit == "horizontal" else camera["sensor_height_mm"]
+    half = side / 2 / camera["focal_length_mm"]
+    hx, hy = (half, half * h / w) if fit == "horizontal" else (half * w / h, half)
+    return 2 * math.degrees(math.atan(hx)), 2 * math.degrees(math.atan(hy))
+
+
+def test_render_settings_conform_policy_and_products_are_honoured(tmp_path: Path) -> None:
+    """UsdRender's aspectRatioConformPolicy decides which side of the aperture is kept
+    (the camera's aperture is 0.36 × 0.2025 units, the image 400 × 100 px); a RenderProduct's
+    own camera and resolution override the settings'; non-square pixels are an error naming
+    the attribute."""
+    h_deg = 2 * math.degrees(math.atan(0.36 / 2 / 0.5))
+    v_deg = 2 * math.degrees(math.atan(0.2025 / 2 / 0.5))
+    expected = {
+        "expandAperture": (2 * math.degrees(math.atan(0.2025 * 2 / 0.5)), v_deg),
+        "cropAperture": (h_deg, 2 * math.degrees(math.atan(0.36 / 8 / 0.5))),
+        "adjustApertureHeight": (h_deg, 2 * math.degrees(math.atan(0.36 / 8 / 0.5))),
+        "adjustApertureWidth": (2 * math.degrees(math.atan(0.2025 * 2 / 0.5)), v_deg),
+    }
+    for policy, (hx, vy) in expected.items():
+        stage = _stage(tmp_path, name=f"{policy}.usda")
+        rs = UsdRender.Settings.Define(stage, "/Render/Settings")
+        rs.CreateResolutionAttr(Gf.Vec2i(400, 100))
+        rs.CreateAspectRatioConformPolicyAttr(policy)
+        conv = convert_stage(stage)
+        got = _fov_deg(conv.scene["camera"])
+        assert got == pytest.approx((hx, vy), rel=1e-6), policy
+        assert any(policy in n for n in conv.notes), policy
+    # A product overrides the camera and the resolution of the settings.
+    stage = _stage(tmp_path, name="product.usda")
+    tele = UsdGeom.Camera.Define(stage, "/World/Tele")
+    tele.CreateFocalLengthAttr(2.0)
+    rs = UsdRender.Settings.Define(stage, "/Render/Settings")
+    rs.CreateResolutionAttr(Gf.Vec2i(320, 240))
+    rs.CreateCameraRel().SetTargets([Sdf.Path("/World/Cam")])
+    product = UsdRender.Product.Define(stage, "/Render/Beauty")
+    product.CreateCameraRel().SetTargets([Sdf.Path("/World/Tele")])
+    product.CreateResolutionAttr(Gf.Vec2i(64, 32))
+    rs.CreateProductsRel().SetTargets([product.GetPath()])
+    conv = convert_stage(stage)
+    assert conv.scene["camera"]["resolution"] == [64, 32]
+    assert conv.scene["camera"]["focal_length_mm"] == pytest.approx(200.0)  # 2 tenths of a unit
+    stage = _stage(tmp_path, name="pixels.usda")
+    UsdRender.Settings.Define(stage, "/Render/Settings").CreatePixelAspectRatioAttr(2.0)
+    with pytest.raises(UsdSceneError) as err:
+        convert_stage(stage)
+    assert (err.value.prim, err.value.attribute) == ("/Render/Settings", "pixelAspectRatio")
+
+
+def test_a_hidden_camera_can_still_be_rendered_through(tmp_path: Path) -> None:
+    """Visibility hides a camera's gizmo, not its view: the only camera, under a hidden
+    group, is used; a chosen hidden camera is not listed as skipped; without a choice, a
+    visible camera wins over a hidden one."""
+    stage = _stage(tmp_path)
+    UsdGeom.Imageable(stage.GetPrimAtPath("/World/Cam")).MakeInvisible()
+    conv = convert_stage(stage)
+    assert conv.scene["camera"]["position"] == [0.0, -10.0, 2.0] and conv.skipped == []
+    rig = UsdGeom.Xform.Define(stage, "/World/Rig")
+    rig.MakeInvisible()
+    other = UsdGeom.Camera.Define(stage, "/World/Rig/Other")
+    UsdGeom.XformCommonAPI(other).SetTranslate(Gf.Vec3d(5, -10, 2))
+    UsdGeom.Imageable(stage.GetPrimAtPath("/World/Cam")).MakeVisible()
+    conv = convert_stage(stage)
+    assert conv.scene["camera"]["position"] == [0.0, -10.0, 2.0]
+    assert [d["prim"] for d in conv.skipped] == ["/World/Rig/Other"]
+    UsdRender.Settings.Define(stage, "/Render/Settings").CreateCameraRel().SetTargets([other.GetPath()])
+    conv = convert_stage(stage)
+    assert conv.scene["camera"]["position"] == [5.0, -10.0, 2.0]
+    assert [d["prim"] for d in conv.skipped] == ["/World/Cam"]
+
+
+def test_values_of_the_wrong_type_are_named(tmp_path: Path) -> None:
+    """A string where numbers belong (each character was once read as a number, or a bare
+    ValueError escaped) or a number where names belong is an error naming the attribute."""
+    cases = [
+        ("/World/Haze", "tyndall:medium:scattering", Sdf.ValueTypeNames.String, "0.05"),
+        ("/World/Haze", "tyndall:medium:scattering", Sdf.ValueTypeNames.String, "5"),
+        ("/World/Lamp", "inputs:color", Sdf.ValueTypeNames.String, "1 0 0"),
+        ("/World/Settings", "tyndall:output:layers", Sdf.ValueTypeNames.Int, 1),
+    ]
+    for k, (prim, attribute, type_name, value) in enumerate(cases):
+        stage = _stage(tmp_path, name=f"types{k}.usda")
+        haze = stage.DefinePrim("/World/Haze")
+        haze.CreateAttribute("tyndall:medium:type", Sdf.ValueTypeNames.String).Set("homogeneous")
+        haze.CreateAttribute("tyndall:medium:scattering", Sdf.ValueTypeNames.Double).Set(0.05)
+        UsdLux.SphereLight.Define(stage, "/World/Lamp")
+        stage.GetPrimAtPath(prim) or stage.DefinePrim(prim)
+        # (Through Sdf: a schema's attribute keeps its declared type in Usd's API, but a
+        # layer may hold any, as a hand-written .usda does.)
+        spec = stage.GetRootLayer().GetPrimAtPath(prim)
+        if attribute in spec.attributes:
+            spec.RemoveProperty(spec.attributes[attribute])
+        Sdf.AttributeSpec(spec, attribute, type_name).default = value
+        with pytest.raises(UsdSceneError) as err:
+            convert_stage(stage)
+        assert (err.value.prim, err.value.attribute) == (prim, attribute), (value, str(err.value))
+
+
+def test_light_inputs_connected_to_a_node_graph_take_its_values(tmp_path: Path) -> None:
+    """A light's ``inputs:intensity`` and ``inputs:color`` connected to a NodeGraph's
+    interface take its values (UsdShade's value-producing attributes, as UsdImaging reads
+    them); a connection to a shader's output, which only a renderer can evaluate, is an
+    error naming the input."""
+    from pxr import UsdShade
+
+    stage = _stage(tmp_path)
+    rig = UsdShade.NodeGraph.Define(stage, "/World/Rig")
+    level = rig.CreateInput("level", Sdf.ValueTypeNames.Float)
+    level.Set(50.0)
+    tint = rig.CreateInput("tint", Sdf.ValueTypeNames.Color3f)
+    tint.Set(Gf.Vec3f(1.0, 0.25, 0.125))
+    lamp = UsdLux.SphereLight.Define(stage, "/World/Lamp")
+    UsdShade.Input(lamp.CreateIntensityAttr()).ConnectToSource(level)
+    UsdShade.Input(lamp.CreateColorAttr()).ConnectToSource(tint)
+    light = convert_stage(stage).scene["lights"][0]
+    assert light["power_w"] == pytest.approx(50.0 * math.pi * 4.0 * math.pi * 0.25)  # normalize off, r = 0.5
+    assert light["color"] == [1.0, 0.25, 0.125]
+    shader = UsdShade.Shader.Define(stage, "/World/Rig/Noise")
+    UsdShade.Input(lamp.GetIntensityAttr()).ConnectToSource(shader.CreateOutput("out", Sdf.ValueTypeNames.Float))
+    with pytest.raises(UsdSceneError) as err:
+        convert_stage(stage)
+    assert (err.value.prim, err.value.attribute) == ("/World/Lamp", "inputs:intensity")
+
+
+def test_shaping_inputs_at_the_edges_of_usdlux(tmp_path: Path) -> None:
+    """Shaping authored without the ShapingAPI schema is read (with a note), a negative
+    focus is ignored as UsdLux says, and a cone over 180° excludes nothing."""
+    stage = _stage(tmp_path)
+    bare = UsdLux.SphereLight.Define(stage, "/World/Bare")
+    bare.GetPrim().CreateAttribute("inputs:shaping:cone:angle", Sdf.ValueTypeNames.Float).Set(20.0)
+    unfocused = UsdLux.SphereLight.Define(stage, "/World/Unfocused")
+    api = UsdLux.ShapingAPI.Apply(unfocused.GetPrim())
+    api.CreateShapingConeAngleAttr(40.0)
+    api.CreateShapingFocusAttr(-1.0)
+    wide = UsdLux.SphereLight.Define(stage, "/World/Wide")
+    UsdLux.ShapingAPI.Apply(wide.GetPrim()).CreateShapingConeAngleAttr(200.0)
+    conv = convert_stage(stage)
+    by_name = {light["name"]: light for light in conv.scene["lights"]}
+    assert (by_name["Bare"]["type"], by_name["Bare"]["spot_size_deg"]) == ("spot", 40.0)
+    assert (by_name["Unfocused"]["type"], by_name["Unfocused"]["spot_size_deg"]) == ("spot", 80.0)
+    assert by_name["Wide"]["distribution"]["cone_angle_deg"] == 180.0
+    assert any(n.startswith("/World/Bare: inputs:shaping:cone:angle read although") for n in conv.notes)
+    assert any(n.startswith("/World/Unfocused: inputs:shaping:focus = -1") for n in conv.notes)
+
+
+def test_an_invisible_medium_is_left_out(tmp_path: Path) -> None:
+    """A medium prim under a hidden group is listed as skipped, not rendered."""
+    stage = _stage(tmp_path)
+    UsdGeom.Scope.Define(stage, "/World/FX").MakeInvisible()
+    fog = stage.DefinePrim("/World/FX/Fog")
+    fog.CreateAttribute("tyndall:medium:type", Sdf.ValueTypeNames.String).Set("homogeneous")
+    fog.CreateAttribute("tyndall:medium:scattering", Sdf.ValueTypeNames.Double).Set(0.05)
+    conv = convert_stage(stage)
+    assert conv.scene["media"] == []
+    assert conv.skipped == [{"prim": "/World/FX/Fog", "reason": "invisible medium"}]

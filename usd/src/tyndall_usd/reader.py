@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux
+from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux, UsdRender, UsdShade
 
 from . import _geom
 
@@ -114,10 +114,24 @@ class Conversion:
 
 
 def _value(prim: Usd.Prim, name: str, time: Usd.TimeCode) -> Any:
-    """The attribute's value (authored or schema fallback), or ``None``."""
+    """The attribute's value (authored or schema fallback), or ``None``. An ``inputs:``
+    attribute connected to another input (a NodeGraph's interface, say) takes the value
+    at the end of the connections, as UsdImaging reads a light's inputs."""
     attr = prim.GetAttribute(name)
     if not attr or not attr.IsValid():
         return None
+    if name.startswith("inputs:") and attr.HasAuthoredConnections():
+        sources = UsdShade.Input(attr).GetValueProducingAttributes()
+        if sources:
+            source = sources[0]
+            if UsdShade.Utils.GetType(source.GetName()) == UsdShade.AttributeType.Output:
+                raise UsdSceneError(
+                    str(prim.GetPath()),
+                    name,
+                    f"is connected to the shader output {source.GetPath()}: only values (or inputs holding "
+                    "them) can be read",
+                )
+            return source.Get(time)
     return attr.Get(time)
 
 
@@ -145,8 +159,10 @@ def _vec(prim: Usd.Prim, name: str, time: Usd.TimeCode, n: int, default: Sequenc
     if v is None:
         return [float(x) for x in default]
     try:
+        if isinstance(v, (str, bytes)):
+            raise TypeError  # (a string's characters are no vector)
         out = [float(x) for x in v]
-    except TypeError:
+    except (TypeError, ValueError):
         raise UsdSceneError(str(prim.GetPath()), name, f"must be {n} numbers, got {v!r}") from None
     if len(out) != n or not all(math.isfinite(x) for x in out):
         raise UsdSceneError(str(prim.GetPath()), name, f"must be {n} finite numbers, got {out}")
@@ -184,8 +200,10 @@ def _coefficient(prim: Usd.Prim, name: str, time: Usd.TimeCode, default: float |
         vals = [float(v)]
     else:
         try:
+            if isinstance(v, (str, bytes)):
+                raise TypeError  # (a string's characters are no coefficients)
             vals = [float(x) for x in v]
-        except TypeError:
+        except (TypeError, ValueError):
             raise UsdSceneError(str(prim.GetPath()), name, f"must be a number or 3 numbers, got {v!r}") from None
         if len(vals) != 3:
             raise UsdSceneError(str(prim.GetPath()), name, f"must be a number or 3 numbers, got {vals}")
@@ -202,6 +220,8 @@ def _names(prim: Usd.Prim, name: str, time: Usd.TimeCode) -> list[str] | None:
         return None
     if isinstance(v, str):
         return [s for s in v.replace(",", " ").split() if s]
+    if not isinstance(v, Sequence) and not hasattr(v, "__len__"):
+        raise UsdSceneError(str(prim.GetPath()), name, f"must be a list of names (token[] or string), got {v!r}")
     return [str(s) for s in v]
 
 
@@ -376,11 +396,22 @@ class _Converter:
             )
         if not self.casts_shadows(prim):
             light["casts_shadows"] = False
+        self.note_linking(prim)
 
-        has_shaping = prim.HasAPI(UsdLux.ShapingAPI)
+        # Shaping inputs count where authored, with or without the ShapingAPI schema applied
+        # (UsdImaging reads a light's inputs by name; `ies` above does the same).
+        shaping_inputs = [
+            n
+            for n in ("inputs:shaping:focus", "inputs:shaping:cone:angle", "inputs:shaping:cone:softness")
+            if _authored(prim, n)
+        ]
+        has_shaping = prim.HasAPI(UsdLux.ShapingAPI) or bool(shaping_inputs)
+        if shaping_inputs and not prim.HasAPI(UsdLux.ShapingAPI):
+            self.notes.append(f"{path}: {', '.join(shaping_inputs)} read although ShapingAPI is not applied")
         focus = _float(prim, "inputs:shaping:focus", self.time, 0.0) if has_shaping else 0.0
         if focus < 0.0:
-            raise UsdSceneError(path, "inputs:shaping:focus", f"must be ≥ 0, got {focus}")
+            self.notes.append(f"{path}: inputs:shaping:focus = {focus:g} < 0 is ignored (UsdLux), read as 0")
+            focus = 0.0
         if has_shaping and _authored(prim, "inputs:shaping:focusTint"):
             tint = _vec(prim, "inputs:shaping:focusTint", self.time, 3, (0.0, 0.0, 0.0))
             if any(t != 0.0 for t in tint) and focus > 0.0:
@@ -390,13 +421,24 @@ class _Converter:
         if not cone_authored and focus == 0.0:
             return {"type": "point", **light}
         angle = _float(prim, "inputs:shaping:cone:angle", self.time, 90.0)
+        if angle > 180.0:
+            # (UsdLux sets no upper limit: a cone past 180° from the axis excludes nothing.)
+            self.notes.append(f"{path}: inputs:shaping:cone:angle = {angle:g}° read as 180° (it excludes nothing)")
+            angle = 180.0
         if not 0.05 <= angle <= 180.0:
-            raise UsdSceneError(path, "inputs:shaping:cone:angle", f"must be in 0.05..=180 degrees, got {angle}")
+            raise UsdSceneError(path, "inputs:shaping:cone:angle", f"must be ≥ 0.05 degrees, got {angle}")
         softness = _float(prim, "inputs:shaping:cone:softness", self.time, 0.0)
         if not 0.0 <= softness <= 1.0:
             raise UsdSceneError(path, "inputs:shaping:cone:softness", f"must be in 0..=1, got {softness}")
         if focus == 0.0 and angle <= 90.0:
-            # Blender's spot: cone angle = Spot Size / 2, softness = Blend.
+            # Blender's spot: cone angle = Spot Size / 2, softness = Blend — as Blender's importer
+            # reads it, and as Cycles' own Hydra delegate does (spot_angle = 2·angle,
+            # spot_smooth = softness): the blend ramps in cos θ, not UsdLux's smoothstep in θ.
+            if softness > 0.0 and not self.from_blender:
+                self.notes.append(
+                    f"{path}: cone softness {softness:g} read as Cycles reads it (Blender's spot blend, a ramp in "
+                    "cos θ), not as UsdLux's smoothstep in θ"
+                )
             return {"type": "spot", **light, "spot_size_deg": 2.0 * angle, "spot_blend": softness}
         self.notes.append(
             f"{path}: shaping (cone {angle:g}°, softness {softness:g}, focus {focus:g}) is not a Blender spot: "
@@ -441,15 +483,39 @@ class _Converter:
         name = _text(prim, NS + "ies:file", self.time, "")
         if not name:
             return None
-        layer = prim.GetStage().GetRootLayer()
-        base = os.path.dirname(layer.realPath) if layer.realPath else os.getcwd()
-        file = name if os.path.isabs(name) else os.path.join(base, name)
+        # Relative to the layer that authored the value (a referenced asset's own folder),
+        # as an asset path would be resolved.
+        stack = prim.GetAttribute(NS + "ies:file").GetPropertyStack(self.time)
+        layer = stack[0].layer if stack else prim.GetStage().GetRootLayer()
+        if os.path.isabs(name):
+            file = name
+        elif layer.realPath:
+            file = layer.ComputeAbsolutePath(name)
+        else:
+            file = os.path.join(os.getcwd(), name)
         if not os.path.isfile(file):
             raise UsdSceneError(path, NS + "ies:file", f"IES file {name!r} not found (resolved to {file})")
         strength = _float(prim, NS + "ies:strength", self.time, 1.0)
         if strength < 0.0:
             raise UsdSceneError(path, NS + "ies:strength", f"must be ≥ 0, got {strength}")
         return {"file": os.path.abspath(file), "strength": strength}
+
+    def note_linking(self, prim: Usd.Prim) -> None:
+        """A note for a light whose light-linking or shadow-linking collection leaves
+        anything out: Tyndall lights every medium and lets every mesh shadow every light."""
+        lux = UsdLux.LightAPI(prim)
+        for what, coll in (
+            ("light linking", lux.GetLightLinkCollectionAPI()),
+            ("shadow linking", lux.GetShadowLinkCollectionAPI()),
+        ):
+            include_root = coll.GetIncludeRootAttr().Get(self.time)
+            excludes = coll.GetExcludesRel().GetTargets()
+            if (include_root is None or include_root) and not excludes:
+                continue  # the fallback: everything is in the collection
+            self.notes.append(
+                f"{prim.GetPath()}: its {what} collection ({coll.GetName()}) is not applied: "
+                + ("it lights every medium" if what == "light linking" else "every mesh shadows it")
+            )
 
     def casts_shadows(self, prim: Usd.Prim) -> bool:
         """``tyndall:castsShadows`` (which the add-on writes, as Blender's exporter writes no
@@ -546,6 +612,19 @@ class _Converter:
         if mesh.GetOrientationAttr().Get(self.time) == UsdGeom.Tokens.leftHanded:
             tris = [[a, c, b] for a, b, c in tris]
         m = self.world_matrix(prim)
+        if prim.HasAPI(UsdLux.LightAPI):
+            # (A mesh light emits from its surface: Tyndall's lights are points, spots, suns
+            # and windows. The mesh itself still blocks light, as it does in Cycles.)
+            self.skip(prim, "mesh light (UsdLux MeshLightAPI): its emission is not supported; kept as an occluder")
+        scheme_attr = mesh.GetSubdivisionSchemeAttr()
+        scheme = scheme_attr.Get(self.time)
+        if scheme_attr.HasAuthoredValue() and scheme != UsdGeom.Tokens.none:
+            # (Only where authored: the fallback, catmullClark, is on most polygon meshes, and
+            # Blender 5.0.1's importer, like Hydra at refine level 0, draws their cage too.)
+            self.notes.append(
+                f"{path}: subdivisionScheme {scheme}: its control cage is used as it stands (Tyndall does not "
+                "subdivide; nor does Blender's importer unless Import Subdivision is on)"
+            )
         out: dict[str, Any] = {
             "name": prim.GetName(),
             "positions": points.tolist(),
@@ -560,7 +639,7 @@ class _Converter:
 
     # -- camera
 
-    def camera(self, prim: Usd.Prim, resolution: list[int] | None) -> dict[str, Any]:
+    def camera(self, prim: Usd.Prim, resolution: list[int] | None, render: list[Usd.Prim]) -> dict[str, Any]:
         path = str(prim.GetPath())
         cam = UsdGeom.Camera(prim)
         proj = cam.GetProjectionAttr().Get(self.time)
@@ -582,15 +661,46 @@ class _Converter:
                 f"no resolution on the stage (Blender does not export it): {resolution[0]}×{resolution[1]} "
                 "from the aperture aspect; set tyndall:output:resolution"
             )
+        for r in render:
+            attr = r.GetAttribute("pixelAspectRatio")
+            if attr and attr.HasAuthoredValue():
+                par = _float(r, "pixelAspectRatio", self.time)
+                if abs(par - 1.0) > 1e-6:
+                    raise UsdSceneError(
+                        str(r.GetPath()), "pixelAspectRatio", f"only square pixels (1) are supported, got {par:g}"
+                    )
+                break
+        policy = "expandAperture"  # UsdRender's fallback
+        where = ""
+        for r in render:
+            if _authored(r, "aspectRatioConformPolicy"):
+                policy, where = _text(r, "aspectRatioConformPolicy", self.time), f"{r.GetPath()}."
+                break
         img_aspect = resolution[0] / resolution[1]
         ap_aspect = h_ap / v_ap
         if abs(img_aspect - ap_aspect) <= 1e-4 * img_aspect:
             fit = "horizontal" if resolution[0] >= resolution[1] else "vertical"
         else:
-            # UsdRender's default aspectRatioConformPolicy, expandAperture.
-            fit = "vertical" if img_aspect > ap_aspect else "horizontal"
+            # UsdRender's aspectRatioConformPolicy: which side of the aperture is kept (the
+            # other follows the image's aspect).
+            wider = img_aspect > ap_aspect
+            fits = {
+                "expandAperture": ("vertical" if wider else "horizontal", "the aperture expanded"),
+                "cropAperture": ("horizontal" if wider else "vertical", "the aperture cropped"),
+                "adjustApertureWidth": ("vertical", "its width adjusted"),
+                "adjustApertureHeight": ("horizontal", "its height adjusted"),
+            }
+            if policy not in fits:
+                raise UsdSceneError(
+                    where.rstrip(".") or path,
+                    "aspectRatioConformPolicy",
+                    f"{policy!r} is not supported (expandAperture, cropAperture, adjustApertureWidth, "
+                    "adjustApertureHeight; square pixels only)",
+                )
+            fit, how = fits[policy]
             self.notes.append(
-                f"{path}: aperture aspect {ap_aspect:.4g} ≠ image aspect {img_aspect:.4g}: aperture expanded"
+                f"{path}: aperture aspect {ap_aspect:.4g} ≠ image aspect {img_aspect:.4g}: {how} "
+                f"({where}aspectRatioConformPolicy = {policy})"
             )
         side = h_ap if fit == "horizontal" else v_ap
         near, far = _vec(prim, "clippingRange", self.time, 2, (1.0, 1e6))
@@ -736,8 +846,8 @@ class _Converter:
             out["spectral"] = _text(prim, NS + "output:spectral", t)
         return out
 
-    def resolution(self, prim: Usd.Prim | None, render_settings: Usd.Prim | None) -> list[int] | None:
-        for p, name in ((prim, NS + "output:resolution"), (render_settings, "resolution")):
+    def resolution(self, prim: Usd.Prim | None, render: list[Usd.Prim]) -> list[int] | None:
+        for p, name in ((prim, NS + "output:resolution"), *((r, "resolution") for r in render)):
             if p is None:
                 continue
             v = _value(p, name, self.time)
@@ -1034,8 +1144,16 @@ class _Converter:
             if any(prim.GetPath().HasPrefix(p) for p in instancers):
                 continue  # under a PointInstancer: its prototypes are drawn only where it places them
             if _authored(prim, NS + "medium:type"):
-                media.append(self.medium(prim))
                 medium_paths.append(prim.GetPath())
+                # (A medium prim is often typeless: its nearest imageable ancestor decides.)
+                img_prim = prim
+                while img_prim and not UsdGeom.Imageable(img_prim):
+                    img_prim = img_prim.GetParent()
+                img = UsdGeom.Imageable(img_prim) if img_prim else None
+                if img and img.ComputeVisibility(self.time) == UsdGeom.Tokens.invisible:
+                    self.skip(prim, "invisible medium")
+                else:
+                    media.append(self.medium(prim))
                 continue
             owner = next((m for m in medium_paths if prim.GetPath().HasPrefix(m)), None)
             if owner is not None:
@@ -1055,10 +1173,11 @@ class _Converter:
                 continue
             if type_name in _STRUCTURAL:
                 continue
-            if not self.drawn(prim, type_name):
-                continue
             if type_name == "Camera":
+                # (Visibility and purpose hide a camera's gizmo, not the view through it.)
                 cameras.append(prim)
+                continue
+            if not self.drawn(prim, type_name):
                 continue
             kind, obj = self.light_or_mesh(prim, type_name)
             if kind == "mesh" and obj is not None:
@@ -1068,12 +1187,12 @@ class _Converter:
                 light_prims.append(str(prim.GetPath()))
 
         settings = self.settings_prim(prims)
-        rs = self.render_settings(render_settings)
-        cam_prim = self.pick_camera(cameras, settings, rs)
-        res = self.resolution(settings, rs)
+        render = self.render_sources(self.render_settings(render_settings))
+        cam_prim = self.pick_camera(cameras, settings, render)
+        res = self.resolution(settings, render)
         scene: dict[str, Any] = {
             "version": 1,
-            "camera": self.camera(cam_prim, res),
+            "camera": self.camera(cam_prim, res, render),
             "meshes": meshes,
             "lights": lights,
             "media": media,
@@ -1103,8 +1222,22 @@ class _Converter:
                 return p
         return prims[0] if len(prims) == 1 else None
 
-    def pick_camera(self, cameras: list[Usd.Prim], settings: Usd.Prim | None, rs: Usd.Prim | None) -> Usd.Prim:
-        for p, rel_name in ((settings, NS + "output:camera"), (rs, "camera")):
+    def render_sources(self, rs: Usd.Prim | None) -> list[Usd.Prim]:
+        """Where UsdRender settings are read: the first RenderProduct of the RenderSettings
+        prim (its own values override the settings', as UsdRender specifies), then the
+        settings. Tyndall renders one image: further products are noted, not rendered."""
+        if rs is None:
+            return []
+        products = [self.stage.GetPrimAtPath(t) for t in UsdRender.Settings(rs).GetProductsRel().GetForwardedTargets()]
+        products = [p for p in products if p and p.IsA(UsdRender.Product)]
+        if len(products) > 1:
+            self.notes.append(
+                f"{rs.GetPath()}: {len(products)} render products: only the first, {products[0].GetPath()}, is rendered"
+            )
+        return [*products[:1], rs]
+
+    def pick_camera(self, cameras: list[Usd.Prim], settings: Usd.Prim | None, render: list[Usd.Prim]) -> Usd.Prim:
+        for p, rel_name in ((settings, NS + "output:camera"), *((r, "camera") for r in render)):
             if p is None:
                 continue
             rel = p.GetRelationship(rel_name)
@@ -1119,12 +1252,26 @@ class _Converter:
                 return cam
         if not cameras:
             raise UsdSceneError("/", None, "the stage has no Camera (Tyndall renders for one camera)")
-        if len(cameras) > 1:
-            paths = ", ".join(str(c.GetPath()) for c in cameras)
+        # Without a choice, a visible camera before a hidden one (a hidden rig's camera or a
+        # guide is most likely not the shot's).
+        shown = [c for c in cameras if self.shown(c)] or cameras
+        if len(shown) > 1:
+            paths = ", ".join(str(c.GetPath()) for c in shown)
             raise UsdSceneError(
                 "/", None, f"several cameras ({paths}): choose one with the relationship tyndall:output:camera"
             )
-        return cameras[0]
+        for other in cameras:
+            if other.GetPath() != shown[0].GetPath():
+                self.skip(other, "hidden camera not chosen (a visible one is)")
+        return shown[0]
+
+    def shown(self, prim: Usd.Prim) -> bool:
+        """Visible, and not a guide or a proxy (without listing the prim as skipped)."""
+        img = UsdGeom.Imageable(prim)
+        return not img or (
+            img.ComputeVisibility(self.time) != UsdGeom.Tokens.invisible
+            and img.ComputePurpose() not in (UsdGeom.Tokens.guide, UsdGeom.Tokens.proxy)
+        )
 
 
 def open_stage(source: Usd.Stage | str | os.PathLike[str]) -> Usd.Stage:
