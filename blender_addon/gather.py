@@ -29,30 +29,80 @@ def _unlinked(node: bpy.types.Node, name: str, where: str) -> Any:
     return tuple(v) if hasattr(v, "__len__") else float(v)
 
 
-def _linked_from(sock: bpy.types.NodeSocket, include_muted_link: bool = False) -> bpy.types.Node | None:
+def _linked_from(
+    sock: bpy.types.NodeSocket, include_muted_link: set[str] | bool | None = None
+) -> bpy.types.Node | None:
+    """The node feeding ``sock``, through reroutes and muted nodes: Cycles replaces a muted
+    node by its internal link (a muted Add Shader passes its first shader on; a muted
+    Volume Scatter or Emission, with no shader input, gives nothing). A muted link counts
+    if ``include_muted_link`` is ``True`` or holds its :func:`link_key` (Tyndall muted it)."""
     for link in sock.links:
-        if link.is_valid and (include_muted_link or not link.is_muted) and not link.from_node.mute:
-            node = link.from_node
-            while node.type == "REROUTE":
-                if not node.inputs[0].is_linked:
-                    return None
-                node = node.inputs[0].links[0].from_node
-            return node
+        if not link.is_valid:
+            continue
+        if link.is_muted and not (
+            include_muted_link is True or (isinstance(include_muted_link, set) and link_key(link) in include_muted_link)
+        ):
+            continue
+        node, out_sock = link.from_node, link.from_socket
+        while node.type == "REROUTE" or node.mute:
+            through = next((il for il in node.internal_links if il.to_socket == out_sock), None)
+            if node.type == "REROUTE":
+                through_in = node.inputs[0]
+            elif through is not None:
+                through_in = through.from_socket
+            else:
+                return None
+            feeding = [lk for lk in through_in.links if lk.is_valid and not lk.is_muted]
+            if not feeding:
+                return None
+            node, out_sock = feeding[0].from_node, feeding[0].from_socket
+        return node
     return None
 
 
 def _active_output(tree: bpy.types.NodeTree, idname: str) -> bpy.types.Node | None:
-    outs = [n for n in tree.nodes if n.bl_idname == idname and not n.mute]
-    for n in outs:
-        if getattr(n, "is_active_output", False) and getattr(n, "target", "ALL") in ("ALL", "CYCLES"):
-            return n
-    return outs[0] if outs else None
+    """The output node Cycles renders (Blender's ``ntreeShaderOutputNode`` for the Cycles
+    target): an output for Cycles before one for All, the active one among equals, else the
+    first; never one for EEVEE only. ``None``: Cycles renders nothing from the tree."""
+    chosen = None
+    for n in tree.nodes:
+        if n.bl_idname != idname:
+            continue
+        target = getattr(n, "target", "ALL")
+        if target not in ("ALL", "CYCLES"):
+            continue
+        if chosen is None:
+            chosen = n
+            continue
+        chosen_target = getattr(chosen, "target", "ALL")
+        if target == "CYCLES" and chosen_target == "ALL":
+            chosen = n
+        elif target == chosen_target and n.is_active_output and not chosen.is_active_output:
+            chosen = n
+    return chosen
 
 
 # -- world volume --------------------------------------------------------------
 
-#: World custom property set while Tyndall has muted the world's Volume link.
+#: World (or fog material) custom property set while Tyndall has muted its Volume links:
+#: the links' :func:`link_key` s, one per line (``True`` in files from before it named them).
 MUTED_VOLUME_PROP = "tyndall_muted_volume"
+
+
+def link_key(link: bpy.types.NodeLink) -> str:
+    """A node link named by its ends (links have no names of their own)."""
+    return f"{link.from_node.name}:{link.from_socket.identifier}>{link.to_node.name}:{link.to_socket.identifier}"
+
+
+def muted_by_tyndall(owner: bpy.types.ID) -> set[str] | bool | None:
+    """The keys of the Volume links Tyndall muted on ``owner`` (``True``: all of them, an
+    older marker), or ``None``."""
+    v = owner.get(MUTED_VOLUME_PROP)
+    if v is None or v is False or v == "":
+        return None
+    if isinstance(v, str):
+        return set(v.split("\n"))
+    return True
 
 
 def _volume_nodes(node: bpy.types.Node, where: str, out: list[bpy.types.Node]) -> None:
@@ -81,8 +131,7 @@ def gather_world_medium(world: bpy.types.World | None) -> list[MediumData]:
         return []
     # A volume link muted by Tyndall's import (surface render for the composite)
     # is still the scene's haze.
-    muted_by_tyndall = bool(world.get(MUTED_VOLUME_PROP, False))
-    root = _linked_from(out.inputs["Volume"], include_muted_link=muted_by_tyndall)
+    root = _linked_from(out.inputs["Volume"], include_muted_link=muted_by_tyndall(world))
     if root is None:
         return []
     return [_medium_of(root, where, "")]
@@ -125,7 +174,7 @@ def _medium_of(root: bpy.types.Node, where: str, prefix: str) -> MediumData:
                 sig_s = [x + y for x, y in zip(sig_s, s, strict=True)]
                 sig_a = [x + y for x, y in zip(sig_a, a, strict=True)]
     except cv.ConversionError as e:
-        raise SceneInputError(f"{where}: {e}") from e
+        raise SceneInputError(f"{where}: node '{n.name}': {e}") from e
     distinct = {repr(p) for _n, p in phases}
     if len(distinct) > 1:
         raise SceneInputError(f"{where}: scattering nodes with different phase functions are not supported ({phases})")
@@ -170,6 +219,8 @@ class RenderedObject:
     kind: str = ""
     """The evaluated object's type: ``POINTCLOUD`` for a mesh that Geometry Nodes turned
     into points, where the original is a ``MESH``."""
+    indirect_only: bool = False
+    """In a collection set to Indirect Only for the view layer: camera rays pass through it."""
 
 
 def _triangles(ev: bpy.types.Object) -> tuple[np.ndarray, np.ndarray] | None:
@@ -192,6 +243,7 @@ def _triangles(ev: bpy.types.Object) -> tuple[np.ndarray, np.ndarray] | None:
 def _collect(depsgraph: bpy.types.Depsgraph) -> list[RenderedObject]:
     """The objects and instances of a render-mode depsgraph that Cycles draws (``show_self``)."""
     out: list[RenderedObject] = []
+    view_layer = depsgraph.view_layer
     for inst in depsgraph.object_instances:
         if not inst.show_self:
             continue  # an emitter with Show Instancer for Render off, a hidden instancer
@@ -210,7 +262,15 @@ def _collect(depsgraph: bpy.types.Depsgraph) -> list[RenderedObject]:
         else:
             name = obj.name
         geometry = _triangles(ev) if obj.type in GEOMETRY_TYPES and ev.type in GEOMETRY_TYPES else None
-        out.append(RenderedObject(name, obj, inst.matrix_world.copy(), geometry, inst.is_instance, ev.type))
+        # (An instance's own object may lie outside the view layer: its instancer decides.)
+        holder = inst.parent.original if inst.is_instance and inst.parent is not None else obj
+        try:
+            indirect = bool(holder.indirect_only_get(view_layer=view_layer))
+        except RuntimeError:  # (not in the view layer's collections: no such flag)
+            indirect = False
+        out.append(
+            RenderedObject(name, obj, inst.matrix_world.copy(), geometry, inst.is_instance, ev.type, indirect)
+        )
     return out
 
 
@@ -218,7 +278,9 @@ def _collect(depsgraph: bpy.types.Depsgraph) -> list[RenderedObject]:
 GATHER_SLOT = "Tyndall (reading the scene)"
 
 
-def rendered_objects(scene: bpy.types.Scene, view_layer: bpy.types.ViewLayer) -> list[RenderedObject]:
+def rendered_objects(
+    scene: bpy.types.Scene, view_layer: bpy.types.ViewLayer, camera_matrix: list[Any] | None = None
+) -> list[RenderedObject]:
     """The objects and instances (collection, particle, geometry-node, vertex instances) that
     Cycles renders in ``view_layer``, evaluated as for a render: render visibility of objects
     and collections, modifiers at their render settings.
@@ -226,7 +288,8 @@ def rendered_objects(scene: bpy.types.Scene, view_layer: bpy.types.ViewLayer) ->
     Blender evaluates a scene for rendering only inside a render, so a render engine that draws
     nothing is registered for the moment and run (without compositing or sequencer); the
     scene's settings are restored afterwards. An instance's name is
-    ``<instancer>/<object>``, numbered from the second on (``Emitter/Lamp 2``).
+    ``<instancer>/<object>``, numbered from the second on (``Emitter/Lamp 2``). The scene
+    camera's evaluated world matrix is appended to ``camera_matrix`` when one is given.
     """
     found: list[RenderedObject] = []
 
@@ -236,6 +299,10 @@ def rendered_objects(scene: bpy.types.Scene, view_layer: bpy.types.ViewLayer) ->
 
         def render(self, depsgraph: bpy.types.Depsgraph) -> None:
             found.extend(_collect(depsgraph))
+            if camera_matrix is not None and depsgraph.scene.camera is not None:
+                # The camera as the render evaluates it (render-only modifiers of what it is
+                # parented to, drivers, a move made just before in a script).
+                camera_matrix.append(depsgraph.scene.camera.evaluated_get(depsgraph).matrix_world.copy())
             # An empty result in the engine's own slot (bpy 5.0's RenderEngine has no size_x:
             # reading it raised, and Blender printed a Python error at every export).
             rs = depsgraph.scene.render
@@ -294,7 +361,7 @@ def _light_nodes(obj: bpy.types.Object, light: bpy.types.Light) -> tuple[IesData
     where = f"light '{obj.name}'"
     out = _active_output(tree, "ShaderNodeOutputLight")
     if out is None:
-        return None, 1.0, (1.0, 1.0, 1.0)
+        return None, 0.0, (1.0, 1.0, 1.0)  # a node tree without a Light Output: Cycles' lamp is dark
     em = _linked_from(out.inputs["Surface"])
     if em is None:
         return None, 0.0, (1.0, 1.0, 1.0)
@@ -464,6 +531,11 @@ def gather_camera(scene: bpy.types.Scene, resolution_scale: float = 1.0) -> Came
     w, h = cv.render_resolution(r.resolution_x, r.resolution_y, r.resolution_percentage, resolution_scale)
     cycles = getattr(scene, "cycles", None)
     data = cam.data
+    filter_type = getattr(cycles, "pixel_filter_type", "BLACKMAN_HARRIS") if cycles else "BLACKMAN_HARRIS"
+    # Cycles' own filter width (a Box filter is always 1 px wide); `render.filter_size` is EEVEE's.
+    filter_width = float(getattr(cycles, "filter_width", 1.5)) if cycles else 1.5
+    if filter_type == "BOX":
+        filter_width = 1.0
     return CameraData(
         name=cam.name,
         matrix=_rows(cam.matrix_world),
@@ -477,8 +549,8 @@ def gather_camera(scene: bpy.types.Scene, resolution_scale: float = 1.0) -> Came
         clip_end=float(data.clip_end),
         resolution=(w, h),
         cam_type=data.type,
-        filter_type=getattr(cycles, "pixel_filter_type", "BLACKMAN_HARRIS") if cycles else "BLACKMAN_HARRIS",
-        filter_size_px=float(r.filter_size),
+        filter_type=filter_type,
+        filter_size_px=filter_width,
         pixel_aspect=(float(r.pixel_aspect_x), float(r.pixel_aspect_y)),
         render_region=("crop" if r.use_crop_to_border else "region") if r.use_border else "",
     )
@@ -499,7 +571,7 @@ def _volume_root(material: bpy.types.Material) -> bpy.types.Node | None:
     out = _active_output(material.node_tree, "ShaderNodeOutputMaterial")
     if out is None:
         return None
-    return _linked_from(out.inputs["Volume"], include_muted_link=bool(material.get(MUTED_VOLUME_PROP, False)))
+    return _linked_from(out.inputs["Volume"], include_muted_link=muted_by_tyndall(material))
 
 
 def _volume_only(material: bpy.types.Material | None) -> bool:
@@ -650,7 +722,9 @@ def gather_meshes(
         obj = ro.original
         if obj.type not in GEOMETRY_TYPES or _fog_materials(obj, override) is not None:
             continue
-        if not obj.visible_camera and not obj.visible_shadow:
+        # An object in an Indirect Only collection is not seen by camera rays (Cycles).
+        camera = bool(obj.visible_camera) and not ro.indirect_only
+        if not camera and not obj.visible_shadow:
             notes.append(f"{ro.name}: Ray Visibility > Camera and Shadow are off; left out")
             continue
         if ro.geometry is not None:
@@ -661,7 +735,7 @@ def gather_meshes(
                     positions=positions,
                     triangles=triangles,
                     matrix=_rows(ro.matrix),
-                    camera=bool(obj.visible_camera),
+                    camera=camera,
                     shadow=bool(obj.visible_shadow),
                 )
             )
@@ -673,7 +747,10 @@ def gather_scene(scene: bpy.types.Scene, view_layer: bpy.types.ViewLayer) -> Sce
     st = scene.tyndall
     camera = gather_camera(scene, st.resolution_scale)
     # Blender renders nothing without a camera: then the build reports the missing camera.
-    objects = rendered_objects(scene, view_layer) if camera is not None else []
+    evaluated_camera: list[Any] = []
+    objects = rendered_objects(scene, view_layer, evaluated_camera) if camera is not None else []
+    if camera is not None and evaluated_camera:
+        camera.matrix = _rows(evaluated_camera[0])
     volumes = [ro.name for ro in objects if ro.original.type == "VOLUME"]
     notes = [
         f"{name}: volume objects (OpenVDB) are not exported (only the world volume and fog boxes)" for name in volumes

@@ -399,8 +399,12 @@ def import_results(context: bpy.types.Context, folder: str, sky: bool = True, vo
         light_layers = rep.get("blender", {}).get("light_layers", {})
         kept: list[str] = []
         lgs = results.setup_lightgroups(scene, light_layers, kept) if st.use_lightgroups else {}
-        results.setup_compositor(scene, exr, light_layers, lgs)
+        wiring: list[str] = []
+        size = rep.get("resolution")
+        exr_size = (int(size[0]), int(size[1])) if isinstance(size, list) and len(size) == 2 else None
+        results.setup_compositor(scene, exr, light_layers, lgs, wiring, exr_size)
         done.append("compositor")
+        done.extend(wiring)
         done.extend(kept)
         if st.mute_world_volume and results.mute_world_volume(scene):
             done.append("world volume muted for the surface render")

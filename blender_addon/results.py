@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import hashlib
 import math
 import os
 from typing import Any
 
 import bpy
+import mathutils
 
 from . import gather
 from .core.conversions import layer_safe_name
@@ -73,12 +75,35 @@ def apply_sky(
         data = bpy.data.lights.new("Tyndall Sun", "SUN")
         sun = bpy.data.objects.new("Tyndall Sun", data)
         scene.collection.objects.link(sun)
-    sun.data.color = tuple(float(c) for c in lamp["color"])
-    sun.data.energy = float(lamp["strength_w_m2"])
-    sun.data.angle = math.radians(float(lamp.get("angle_deg", math.degrees(sun.data.angle))))
-    sun.rotation_mode = "XYZ"
-    sun.rotation_euler = tuple(float(a) for a in lamp["rotation_euler_xyz_rad"])
+    data = sun.data
+    data.color = tuple(float(c) for c in lamp["color"])
+    data.energy = float(lamp["strength_w_m2"])
+    data.angle = math.radians(float(lamp.get("angle_deg", math.degrees(data.angle))))
+    # What Cycles multiplies the Strength and Color by must not alter the report's values.
+    data.exposure = 0.0
+    data.normalize = True
+    data.use_temperature = False
+    # The report's rotation is the sun's direction in the world: a parent's turn must not add
+    # to it (the lamp keeps its place and scale).
+    rotation = mathutils.Euler(tuple(float(a) for a in lamp["rotation_euler_xyz_rad"]), "XYZ").to_matrix()
+    loc, _rot, scale = sun.matrix_world.decompose()
+    sun.matrix_world = mathutils.Matrix.LocRotScale(loc, rotation, scale)
     return sun
+
+
+#: Blender keeps names to 63 bytes: the pass ``Combined_<light group>`` must fit.
+MAX_LIGHTGROUP_BYTES = 63 - len("Combined_")
+
+
+def lightgroup_name(layer: str) -> str:
+    """``tyndall_<layer name>`` (ASCII, see :func:`layer_safe_name`), shortened with a hash of
+    the whole name where the pass ``Combined_<group>`` would pass Blender's 63 bytes: a
+    truncated pass name matched no light group, and two long names shared one."""
+    full = LIGHTGROUP_PREFIX + layer_safe_name(layer.removeprefix("inscatter."))
+    if len(full) <= MAX_LIGHTGROUP_BYTES:
+        return full
+    digest = hashlib.sha1(full.encode()).hexdigest()[:8]
+    return f"{full[: MAX_LIGHTGROUP_BYTES - 9]}_{digest}"
 
 
 def setup_lightgroups(
@@ -100,7 +125,7 @@ def setup_lightgroups(
             if kept is not None:
                 kept.append(f"{obj_name} keeps its light group '{obj.lightgroup}' (no per-light composite)")
             continue
-        lg = LIGHTGROUP_PREFIX + layer_safe_name(layer.removeprefix("inscatter."))
+        lg = lightgroup_name(layer)
         obj.lightgroup = lg
         for vl in scene.view_layers:
             if vl.lightgroups.get(lg) is None:
@@ -162,23 +187,29 @@ def _mute_volume(owner: bpy.types.World | bpy.types.Material, output: str) -> bo
         if node.bl_idname == output
         for link in node.inputs["Volume"].links
     ]
-    for link in links:
+    # Only links the user left live: a link the user muted is not haze Cycles renders, and
+    # marking it would make the next export read it as haze.
+    ours = [link for link in links if not link.is_muted]
+    for link in ours:
         link.is_muted = True
-    if links:
-        owner[gather.MUTED_VOLUME_PROP] = True
-    return bool(links)
+    if ours:
+        keys = set(gather.muted_by_tyndall(owner) or ()) | {gather.link_key(link) for link in ours}
+        owner[gather.MUTED_VOLUME_PROP] = "\n".join(sorted(keys))
+    return bool(ours)
 
 
 def unmute_world_volume(scene: bpy.types.Scene) -> bool:
     """Undo :func:`mute_world_volume` (only links Tyndall muted). Returns whether it did."""
     done = False
     for world in gather.worlds_rendered(scene):
-        if world.node_tree is None or not world.get(gather.MUTED_VOLUME_PROP, False):
+        ours = gather.muted_by_tyndall(world)
+        if world.node_tree is None or ours is None:
             continue
         for node in world.node_tree.nodes:
             if node.bl_idname == "ShaderNodeOutputWorld":
                 for link in node.inputs["Volume"].links:
-                    link.is_muted = False
+                    if ours is True or gather.link_key(link) in ours:
+                        link.is_muted = False
         del world[gather.MUTED_VOLUME_PROP]
         done = True
     return done
@@ -197,7 +228,12 @@ def mute_fog_volumes(names: list[str]) -> list[str]:
 
 
 def setup_compositor(
-    scene: bpy.types.Scene, exr: str, light_layers: dict[str, str], lightgroups: dict[str, str]
+    scene: bpy.types.Scene,
+    exr: str,
+    light_layers: dict[str, str],
+    lightgroups: dict[str, str],
+    notes: list[str] | None = None,
+    exr_size: tuple[int, int] | None = None,
 ) -> bpy.types.NodeTree:
     """``scene.compositing_node_group``: the surface render seen through Tyndall's haze.
 
@@ -218,6 +254,12 @@ def setup_compositor(
     product of filtered layers is not the filtered product (silhouettes; the
     surface transmittance is averaged over the pixel's surface samples), and
     the render must be made without the world volume (:func:`mute_world_volume`).
+
+    Tyndall's layers are scaled to the render's size when they were computed at another
+    (the panel's Resolution Scale) and multiplied by Cycles' Film Exposure, which scales
+    every pass of the render (``exr_size``: the layers' size in pixels, from the report; a
+    multilayer image's own size reads 0 until its pixels are loaded). What could not be
+    wired is appended to ``notes``.
     """
     tree = bpy.data.node_groups.get(COMPOSITOR_GROUP)
     if tree is None or tree.bl_idname != "CompositorNodeTree":
@@ -247,11 +289,46 @@ def setup_compositor(
         links.new(b, _sock(m.inputs, "B_Color"))
         return _sock(m.outputs, "Result_Color")
 
+    r = scene.render
+    pct = r.resolution_percentage / 100.0
+    render_size = (max(1, int(r.resolution_x * pct)), max(1, int(r.resolution_y * pct)))
+    rescale = exr_size is not None and tuple(exr_size) != render_size
+    cycles = getattr(scene, "cycles", None)
+    exposure = float(getattr(cycles, "film_exposure", 1.0)) if cycles is not None else 1.0
+
+    def sized(sock: bpy.types.NodeSocket) -> bpy.types.NodeSocket:
+        """``sock`` stretched to the render's size (the compositor does not scale images)."""
+        if not rescale:
+            return sock
+        n = tree.nodes.new("CompositorNodeScale")
+        n.label = f"{sock.name} to the render size"
+        n.location = (sock.node.location.x + 180, sock.node.location.y)
+        n.inputs["Type"].default_value = "Render Size"
+        n.inputs["Frame Type"].default_value = "Stretch"
+        n.inputs["Extension X"].default_value = "Extend"
+        n.inputs["Extension Y"].default_value = "Extend"
+        links.new(sock, n.inputs["Image"])
+        return n.outputs["Image"]
+
+    def exposed(sock: bpy.types.NodeSocket, x: float, y: float) -> bpy.types.NodeSocket:
+        """In-scatter × Film Exposure, as Cycles scales the render's passes."""
+        if exposure == 1.0:
+            return sock
+        m = _mix(tree, "MULTIPLY", f"× Film Exposure {exposure:g}", (x, y))
+        links.new(sock, _sock(m.inputs, "A_Color"))
+        _sock(m.inputs, "B_Color").default_value = (exposure, exposure, exposure, 1.0)
+        return _sock(m.outputs, "Result_Color")
+
     rl = tree.nodes.new("CompositorNodeRLayers")
     rl.scene = scene
     rl.location = (-900, 400)
     vol = image_node(None, "Tyndall volumetrics", 0.0)
     assert vol is not None
+    if rescale:
+        (notes if notes is not None else []).append(
+            f"volumetrics {exr_size[0]}×{exr_size[1]} px stretched to the render's {render_size[0]}×{render_size[1]} "
+            "(Resolution Scale): a preview, softer than the render"
+        )
     out = tree.nodes.new("NodeGroupOutput")
     out.location = (900, 150)
 
@@ -260,23 +337,33 @@ def setup_compositor(
     rest = rl.outputs["Image"]
     through_haze = None
     y = -300.0
+    unwired: list[str] = []
     for obj_name, lg in lightgroups.items():
         pass_name = light_layers[obj_name].removeprefix("inscatter.")
         src = rl.outputs.get(f"Combined_{lg}")
         if src is None or surf is None or surf.outputs.get(pass_name) is None:
+            unwired.append(obj_name)
             continue
-        lit = mix("MULTIPLY", f"{obj_name} × its surface transmittance", src, surf.outputs[pass_name], -500, y)
+        lit = mix("MULTIPLY", f"{obj_name} × its surface transmittance", src, sized(surf.outputs[pass_name]), -500, y)
         rest = mix("SUBTRACT", f"− {obj_name}", rest, src, -500, y + 120)
         through_haze = lit if through_haze is None else mix("ADD", f"+ {obj_name}", through_haze, lit, -200, y)
         if per is not None and per.outputs.get(pass_name) is not None:
             tree.interface.new_socket(obj_name, in_out="OUTPUT", socket_type="NodeSocketColor")
-            own = mix("ADD", f"+ inscatter.{pass_name}", lit, per.outputs[pass_name], 300, y)
+            own_light = exposed(sized(per.outputs[pass_name]), 150, y)
+            own = mix("ADD", f"+ inscatter.{pass_name}", lit, own_light, 300, y)
             links.new(own, out.inputs[obj_name])
         y -= 300.0
-    image = mix("MULTIPLY", "× transmittance", rest, vol.outputs["transmittance"], -200, 300)
+    if unwired and notes is not None:
+        why = (
+            f"the render engine is {r.engine}, whose Render Layers have no light-group passes"
+            if r.engine != "CYCLES"
+            else "no light-group pass or surface-transmittance layer for them"
+        )
+        notes.append(f"no per-light composite for {', '.join(unwired)} ({why}): dimmed by the view transmittance")
+    image = mix("MULTIPLY", "× transmittance", rest, sized(vol.outputs["transmittance"]), -200, 300)
     if through_haze is not None:
         image = mix("ADD", "+ lights through the haze", image, through_haze, 100, 300)
-    image = mix("ADD", "+ inscatter", image, vol.outputs["inscatter"], 400, 300)
+    image = mix("ADD", "+ inscatter", image, exposed(sized(vol.outputs["inscatter"]), 250, 450), 400, 300)
     links.new(image, out.inputs["Image"])
     scene.compositing_node_group = tree
     scene.render.use_compositing = True

@@ -135,7 +135,10 @@ def test_light_and_spot_conversions() -> None:
 
 def test_volume_conversions() -> None:
     assert cv.volume_scatter_sigma_s(2.0, (0.06, 0.04, 0.02)) == pytest.approx((0.12, 0.08, 0.04))
-    assert cv.volume_absorption_sigma_a(2.0, (0.25, 1.0, 1.5)) == pytest.approx((1.5, 0.0, 0.0))
+    assert cv.volume_absorption_sigma_a(2.0, (0.25, 1.0, 0.5)) == pytest.approx((1.5, 0.0, 1.0))
+    # Cycles does not clamp 1 − Color: a component above 1 amplifies light, which Tyndall cannot.
+    with pytest.raises(cv.ConversionError, match="above 1"):
+        cv.volume_absorption_sigma_a(2.0, (0.25, 1.0, 1.5))
     s, a = cv.principled_volume_coefficients(1.0, (0.5, 0.5, 0.5), (0.0, 0.0, 0.0))
     assert s == pytest.approx((0.5,) * 3) and a == pytest.approx((0.5,) * 3)
     s, a = cv.principled_volume_coefficients(1.0, (0.5, 0.5, 0.5), (1.0, 0.25, 0.0))
@@ -473,7 +476,16 @@ def test_generate_sky_sets_world_and_sun(addon: None, tmp_path: Path) -> None:
     sc = bpy.context.scene
     sun = bpy.data.objects.new("Sun", bpy.data.lights.new("Sun", "SUN"))
     sc.collection.objects.link(sun)
-    sun.rotation_euler = (math.radians(50.0), 0.0, math.radians(30.0))  # elevation 40°
+    # On a rig turned 90° (its turn once added to the report's rotation: 65.6° off), with the
+    # lamp's own Exposure, Normalize off and a Temperature, which Cycles would multiply the
+    # report's strength and colour by.
+    rig = bpy.data.objects.new("Rig", None)
+    sc.collection.objects.link(rig)
+    rig.rotation_euler = (0.0, 0.0, math.radians(90.0))
+    sun.parent = rig
+    sun.rotation_euler = (math.radians(50.0), 0.0, math.radians(-60.0))  # elevation 40°
+    sun.data.exposure, sun.data.normalize, sun.data.use_temperature = 1.0, False, True
+    bpy.context.view_layer.update()
     sc.tyndall.sky_width = 64
     out = tmp_path / "sky"
     assert bpy.ops.tyndall.generate_sky("EXEC_DEFAULT", directory=str(out)) == {"FINISHED"}
@@ -483,8 +495,11 @@ def test_generate_sky_sets_world_and_sun(addon: None, tmp_path: Path) -> None:
     assert lamp["elevation_deg"] == pytest.approx(40.0, abs=1e-4)
     assert sun.data.energy == pytest.approx(lamp["strength_w_m2"], rel=1e-6)
     assert tuple(sun.data.color) == pytest.approx(tuple(lamp["color"]), rel=1e-6)
+    bpy.context.view_layer.update()
     z = [sun.matrix_world[r][2] for r in range(3)]
     assert z == pytest.approx(lamp["direction_to_sun"], abs=1e-6)
+    assert (sun.data.exposure, sun.data.normalize, sun.data.use_temperature) == (0.0, True, False)
+    assert sun.parent == rig and tuple(sun.matrix_world.to_scale()) == pytest.approx((1.0, 1.0, 1.0))
     tree = sc.world.node_tree
     env = tree.nodes["Tyndall Sky"]
     assert env.projection == "EQUIRECTANGULAR" and env.image.size[:] == (64, 32)
@@ -1660,3 +1675,163 @@ def test_point_clouds_hair_and_depth_of_field_are_noted(addon: None) -> None:
     assert any(n.startswith("pts/pts: point cloud geometry is not exported") for n in built.notes), built.notes
     assert any(n.startswith("Hair: hair curves geometry is not exported") for n in built.notes), built.notes
     assert any(n.startswith("Cam: Depth of Field is not reproduced") for n in built.notes), built.notes
+
+
+def test_the_output_node_and_muted_nodes_are_read_as_cycles_reads_them(addon: None) -> None:
+    """Blender's ``ntreeShaderOutputNode`` for Cycles: an output for Cycles wins over an
+    active one for All, an EEVEE-only output is never Cycles'; a light whose node tree has no
+    Light Output renders dark; a muted Add Shader passes its first shader on (Cycles relinks
+    a muted node through its internal links)."""
+    objs = make_scene(density=0.05)
+    sc = bpy.context.scene
+    nt = objs["world"].node_tree
+    for_cycles = nt.nodes.new("ShaderNodeOutputWorld")
+    for_cycles.target = "CYCLES"
+    denser = nt.nodes.new("ShaderNodeVolumeScatter")
+    denser.inputs["Density"].default_value = 0.2
+    denser.inputs["Color"].default_value = (1.0, 1.0, 1.0, 1.0)
+    nt.links.new(denser.outputs[0], for_cycles.inputs["Volume"])
+    first = next(n for n in nt.nodes if n.bl_idname == "ShaderNodeOutputWorld" and n != for_cycles)
+    first.is_active_output = True
+    (medium,) = gather.gather_world_medium(objs["world"])
+    assert medium.scattering == pytest.approx((0.2, 0.2, 0.2))
+    for_cycles.target = "EEVEE"
+    (medium,) = gather.gather_world_medium(objs["world"])
+    assert medium.scattering == pytest.approx((0.025, 0.03, 0.04))  # the All output's: 0.05 × Color
+    nt.nodes.remove(for_cycles)
+    # A muted Add Shader: the first shader passes (the second, an absorption, does not).
+    add = nt.nodes.new("ShaderNodeAddShader")
+    absorb = nt.nodes.new("ShaderNodeVolumeAbsorption")
+    absorb.inputs["Density"].default_value = 1.0
+    nt.links.new(objs["scatter"].outputs[0], add.inputs[0])
+    nt.links.new(absorb.outputs[0], add.inputs[1])
+    nt.links.new(add.outputs[0], first.inputs["Volume"])
+    (medium,) = gather.gather_world_medium(objs["world"])
+    assert medium.absorption != pytest.approx((0.0, 0.0, 0.0))
+    add.mute = True
+    (medium,) = gather.gather_world_medium(objs["world"])
+    assert medium.scattering == pytest.approx((0.025, 0.03, 0.04)) and medium.absorption == (0.0, 0.0, 0.0)
+    # A light whose node tree lost its output is as dark as one whose output has no input.
+    light = objs["spot"].data
+    light.use_nodes = True
+    (before,) = _lights(sc)
+    out = next(n for n in light.node_tree.nodes if n.bl_idname == "ShaderNodeOutputLight")
+    light.node_tree.links.remove(out.inputs["Surface"].links[0])
+    (unlinked,) = _lights(sc)
+    light.node_tree.nodes.remove(out)
+    (no_output,) = _lights(sc)
+    assert before.energy > 0.0 and no_output.energy == unlinked.energy == 0.0
+
+
+def test_indirect_only_filter_width_and_the_evaluated_camera_are_cycles(addon: None) -> None:
+    """An object in an Indirect Only collection is not seen by camera rays; the pixel filter is
+    Cycles' own width (a Box filter 1 px), not EEVEE's Filter Size; the camera is where the
+    render evaluates it (vertex-parented to a mesh with a render-only Displace: 3 m higher)."""
+    objs = make_scene()
+    sc = bpy.context.scene
+    sc.render.engine = "CYCLES"
+    props = bpy.data.collections.new("Props")
+    sc.collection.children.link(props)
+    sc.collection.objects.unlink(objs["cube"])
+    props.objects.link(objs["cube"])
+    bpy.context.view_layer.layer_collection.children["Props"].indirect_only = True
+    sc.cycles.filter_width, sc.render.filter_size = 3.0, 1.5
+    rig = bpy.data.objects.new("Rig", bpy.data.meshes.new("Rig"))
+    rig.data.from_pydata([(0.0, -10.0, 2.0), (0.1, -10.0, 2.0), (0.0, -9.9, 2.0)], [], [(0, 1, 2)])
+    sc.collection.objects.link(rig)
+    lift = rig.modifiers.new("Lift", "DISPLACE")
+    lift.direction, lift.strength, lift.mid_level = "Z", 3.0, 0.0
+    lift.show_viewport, lift.show_render = False, True
+    cam = objs["camera"]
+    cam.location = (0.0, 0.0, 0.0)
+    cam.parent, cam.parent_type = rig, "VERTEX"
+    cam.parent_vertices[0] = 0
+    bpy.context.view_layer.update()
+    built = _built()
+    cube = next(m for m in built.scene["meshes"] if m["name"] == "Cube")
+    assert cube.get("visible_to_camera") is False and cube.get("casts_shadows", True) is True
+    assert built.scene["output"]["pixel_filter"] == {"type": "blackman_harris", "width_px": 3.0}
+    assert built.scene["camera"]["position"] == pytest.approx([0.0, -10.0, 5.0], abs=1e-5)
+    sc.cycles.pixel_filter_type = "BOX"
+    assert _built().scene["output"]["pixel_filter"]["width_px"] == 1.0
+
+
+def test_long_light_names_keep_their_own_light_groups(addon: None) -> None:
+    """Blender keeps names to 63 bytes: ``Combined_tyndall_<name>`` of a long light name was
+    cut, so it matched no light group (47 characters and more), and two long names shared
+    one. The groups are shortened with a hash of the whole name, and each has its pass."""
+    make_scene()
+    sc = bpy.context.scene
+    sc.render.engine = "CYCLES"
+    names = [f"Key light over the main stage, left side, for scene twelve {k}" for k in "AB"]
+    layers = {}
+    for k, name in enumerate(names):
+        lamp = bpy.data.objects.new(name, bpy.data.lights.new(f"L{k}", "POINT"))
+        sc.collection.objects.link(lamp)
+        layers[lamp.name] = "inscatter." + cv.layer_safe_name(lamp.name)
+    groups = blender_addon.results.setup_lightgroups(sc, layers)
+    assert len(set(groups.values())) == 2
+    tree = bpy.data.node_groups.new("probe", "CompositorNodeTree")
+    rl = tree.nodes.new("CompositorNodeRLayers")
+    rl.scene = sc
+    for group in groups.values():
+        assert len(("Combined_" + group).encode()) <= 63
+        assert bpy.context.view_layer.lightgroups.get(group) is not None
+        assert rl.outputs.get(f"Combined_{group}") is not None, group
+
+
+def _volumetrics_exr(path: Path, size: tuple[int, int], layers: dict[str, float]) -> None:
+    """A Tyndall-like EXR (``<layer>.R/G/B``, constant values), written by OpenEXR."""
+    import numpy as np
+    import OpenEXR
+
+    w, h = size
+    channels = {f"{layer}.{c}": np.full((h, w), v, dtype=np.float32) for layer, v in layers.items() for c in "RGB"}
+    OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}, channels).write(str(path))
+
+
+def test_the_composite_follows_resolution_scale_and_film_exposure(addon: None, tmp_path: Path) -> None:
+    """Layers computed at another size than the render's are stretched to it (Blender 5's
+    compositor does not scale images: a half-size EXR sat in the middle of a black frame),
+    and the in-scatter is multiplied by Cycles' Film Exposure, which scales every pass of
+    the render it is added to."""
+    make_scene()
+    sc = bpy.context.scene
+    sc.render.engine = "CYCLES"
+    sc.cycles.film_exposure = 2.0
+    exr = tmp_path / "volumetrics.exr"
+    _volumetrics_exr(exr, (32, 18), {"inscatter": 0.25, "transmittance": 0.5})
+    notes: list[str] = []
+    tree = blender_addon.results.setup_compositor(sc, str(exr), {}, {}, notes, (32, 18))
+    scales = [n for n in tree.nodes if n.bl_idname == "CompositorNodeScale"]
+    assert len(scales) == 2 and all(n.inputs["Type"].default_value == "Render Size" for n in scales)
+    assert any("stretched to the render's 64×36" in n for n in notes), notes
+    exposure = [n for n in tree.nodes if n.label.startswith("× Film Exposure")]
+    assert len(exposure) == 1
+    assert tuple(_sock_value(exposure[0], "B_Color"))[:3] == (2.0, 2.0, 2.0)
+    sc.cycles.film_exposure = 1.0
+    tree = blender_addon.results.setup_compositor(sc, str(exr), {}, {}, [], (64, 36))
+    assert not [n for n in tree.nodes if n.bl_idname == "CompositorNodeScale" or n.label.startswith("× Film")]
+
+
+def _sock_value(node: Any, identifier: str) -> Any:
+    return next(s for s in node.inputs if s.identifier == identifier).default_value
+
+
+def test_a_volume_link_the_user_muted_stays_out(addon: None) -> None:
+    """Muting the world volume for the composite's surface render once marked a world whose
+    link the user had muted, and the next export read that link as haze Cycles never renders.
+    Only links Tyndall mutes are marked (and unmuted again)."""
+    objs = make_scene()
+    sc = bpy.context.scene
+    out = next(n for n in objs["world"].node_tree.nodes if n.bl_idname == "ShaderNodeOutputWorld")
+    link = out.inputs["Volume"].links[0]
+    link.is_muted = True
+    assert gather.gather_world_medium(objs["world"]) == []
+    assert blender_addon.results.mute_world_volume(sc) is False
+    assert gather.gather_world_medium(objs["world"]) == []
+    assert blender_addon.results.unmute_world_volume(sc) is False and link.is_muted
+    link.is_muted = False
+    assert blender_addon.results.mute_world_volume(sc) is True and link.is_muted
+    assert len(gather.gather_world_medium(objs["world"])) == 1  # still the scene's haze
+    assert blender_addon.results.unmute_world_volume(sc) is True and not link.is_muted
