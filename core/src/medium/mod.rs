@@ -334,6 +334,18 @@ impl<const C: usize> PreparedMedium<C> {
         }
     }
 
+    /// Along `ray`, the length over which the medium's density falls by e where
+    /// it falls for ever: H/d_z for a height fog seen upwards (its source dies
+    /// out over that length, however thin the fog and so however long its
+    /// extinction's own scale). `None` for media bounded along the ray or of
+    /// constant density.
+    pub fn density_decay_length(&self, ray: &ViewRay) -> Option<f64> {
+        match self {
+            PreparedMedium::HeightFog(m) if ray.dir.z > 0.0 => Some(m.scale_height / ray.dir.z),
+            _ => None,
+        }
+    }
+
     /// The channels in which a height fog is opaque at once at `p`: σ_t >
     /// 1e20 m⁻¹, a 1/e length far below any length a scene holds (the density
     /// itself overflows f64 only some 700 scale heights below the reference

@@ -1554,6 +1554,17 @@ fn integrate_media<const C: usize>(
     };
     let mut tail_start = None;
     if tail {
+        // A height fog seen upwards thins out over H/d_z. Where that is much
+        // shorter than the extinction's scale (thin media), the tail's map put
+        // its first node beyond the fog's light: a height fog with a haze box at
+        // optical depth 1e-5 came out 16 % dark with an estimate of 2e-7. Cuts at
+        // 4^k decay lengths, k = 0 … 3, resolve the fog's fall; the tail then
+        // starts where its source has fallen by e^-64.
+        let a = *cuts.last().unwrap_or(&0.0);
+        let decay = media.iter().filter_map(|m| m.density_decay_length(ray)).fold(f64::INFINITY, f64::min);
+        if decay * tail_rates(a).2 < 0.25 && (a + 64.0 * decay).is_finite() {
+            cuts.extend((0..4).map(|k| a + decay * 4f64.powi(k)));
+        }
         let a = *cuts.last().unwrap_or(&0.0);
         let rates = tail_rates(a);
         if rates.0 > 64.0 * rates.1 {
