@@ -1047,6 +1047,11 @@ fn thin_height_fog_with_a_thin_box_adds_up() {
     for c in 0..3 {
         let sum = fog_alone[c] + haze_alone[c];
         let off = (both[c] - sum).abs() / sum;
-        assert!(off < 1e-4, "channel {c}: both {} against {sum} ({off:.2e} off), estimate {}", both[c], error[c]);
+        assert!(
+            off < 1e-4,
+            "channel {c}: both {} against {sum} ({off:.2e} off), estimate {}",
+            both[c],
+            error[c]
+        );
     }
 }

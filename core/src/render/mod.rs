@@ -1561,7 +1561,10 @@ fn integrate_media<const C: usize>(
         // 4^k decay lengths, k = 0 … 3, resolve the fog's fall; the tail then
         // starts where its source has fallen by e^-64.
         let a = *cuts.last().unwrap_or(&0.0);
-        let decay = media.iter().filter_map(|m| m.density_decay_length(ray)).fold(f64::INFINITY, f64::min);
+        let decay = media
+            .iter()
+            .filter_map(|m| m.density_decay_length(ray))
+            .fold(f64::INFINITY, f64::min);
         if decay * tail_rates(a).2 < 0.25 && (a + 64.0 * decay).is_finite() {
             cuts.extend((0..4).map(|k| a + decay * 4f64.powi(k)));
         }
