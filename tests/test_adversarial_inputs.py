@@ -371,3 +371,35 @@ def test_a_window_beyond_the_mesh_range_is_named() -> None:
                         "aperture": [[-big, -big, 3], [big, -big, 3], [big, big, 3], [-big, big, 3]]})
     with pytest.raises(tyndall.SceneFormatError, match=r"lights\[1\]\.aperture\[0\]: corner beyond ±1e7 m"):
         tyndall.render(s)
+
+
+def test_render_overrides_are_checked_like_the_scene() -> None:
+    """``tolerance``, ``threads`` and ``layers`` given to ``render`` raise SceneFormatError
+    naming the field, as the scene's own ``output`` fields do (a bare ValueError before)."""
+    scene = spot_stage(500.0)
+    for kwargs, path in (({"tolerance": 2.0}, "output.tolerance"), ({"layers": ["bogus"]}, "layers")):
+        with pytest.raises(tyndall.SceneFormatError) as info:
+            tyndall.render(scene, **kwargs)
+        assert info.value.path == path, kwargs
+
+
+def test_a_scene_must_be_a_json_object(tmp_path: Path) -> None:
+    """serde reads a struct from an array by field order: a whole scene written as
+    ``[1, {camera}, …]`` rendered. The root must be an object."""
+    scene = spot_stage(500.0)
+    as_array = [scene["version"], scene["camera"], scene.get("meshes", []), scene["lights"], scene["media"], {}]
+    path = tmp_path / "array.json"
+    path.write_text(json.dumps(as_array))
+    with pytest.raises(tyndall.SceneFormatError, match="a scene is a JSON object"):
+        tyndall.render(path)
+
+
+def test_a_colour_times_strength_that_overflows_names_the_light() -> None:
+    """Each value valid on its own, their product past f64's range: the error names the
+    light's field (it was reported as an internal bug with no field)."""
+    scene = spot_stage(500.0)
+    sun = {"type": "sun", "direction_to_sun": [0, 1, 1], "strength_w_m2": 1e300, "color": [1e10, 1, 1]}
+    scene["lights"].append(sun)
+    with pytest.raises(tyndall.SceneFormatError) as info:
+        tyndall.render(scene)
+    assert info.value.path == "lights[1].strength_w_m2"

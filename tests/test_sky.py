@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -71,12 +72,51 @@ def test_sky_exr_is_plain_rgb(tmp_path: Path) -> None:
 
 @pytest.mark.parametrize(
     ("kwargs", "field"),
-    [({"sun_elevation_deg": 95.0}, "sun_elevation_rad"), ({"sun_elevation_deg": 10.0, "ozone": -1.0}, "ozone_density")],
+    [
+        ({"sun_elevation_deg": 95.0}, "sun_elevation_deg"),
+        ({"sun_elevation_deg": 10.0, "ozone": -1.0}, "ozone"),
+        ({"sun_elevation_deg": 10.0, "sun_size_deg": 100.0}, "sun_size_deg"),
+        ({"sun_elevation_deg": 10.0, "width": -5}, "width"),
+        ({"sun_elevation_deg": 10.0, "tolerance": 2.0}, "tolerance"),
+    ],
 )
 def test_sky_rejects_bad_parameters_naming_the_field(kwargs: dict[str, float], field: str) -> None:
+    """Errors name the keyword the caller gave, in its units (the elevation's message once
+    named ``sun_elevation_rad`` in radians; a negative width raised OverflowError)."""
     with pytest.raises(tyndall.SceneFormatError) as info:
         tyndall.sky(**kwargs)  # type: ignore[arg-type]
     assert info.value.path == field
+    if field.endswith("_deg"):
+        assert "degrees" in str(info.value)
+
+
+def test_sky_output_path_is_checked_before_the_sky_is_computed(tmp_path: Path) -> None:
+    """``out`` must end in .exr (EXR bytes were written into a .png), and a missing folder
+    is created (it failed only after the whole sky was computed)."""
+    with pytest.raises(tyndall.RenderFailed, match=r"\.exr"):
+        tyndall.sky(10.0, width=16, out=tmp_path / "sky.png")
+    assert not (tmp_path / "sky.png").exists()
+    deep = tmp_path / "a" / "b" / "sky.exr"
+    tyndall.sky(10.0, width=16, out=deep)
+    assert deep.exists() and deep.with_suffix(".report.json").exists()
+
+
+def test_a_sky_too_large_for_memory_is_a_parameter_error() -> None:
+    """65536 px wide is within the width's range but needs 25.8 GB: a SceneFormatError
+    naming ``width`` before any work, not an abort (in a subprocess with 4 GB of address
+    space, so that the outcome does not depend on the machine, and a regression cannot take
+    the test runner down)."""
+    code = (
+        "import resource, tyndall\n"
+        "resource.setrlimit(resource.RLIMIT_AS, (4 << 30, 4 << 30))\n"
+        "try:\n"
+        "    tyndall.sky(10.0, width=65536)\n"
+        "except tyndall.SceneFormatError as e:\n"
+        "    print('PATH', e.path)\n"
+    )
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0, run.stderr[-2000:]
+    assert "PATH width" in run.stdout
 
 
 def test_sky_cli(tmp_path: Path, tyndall_exe: Path) -> None:
@@ -95,7 +135,7 @@ def test_sky_cli(tmp_path: Path, tyndall_exe: Path) -> None:
         text=True,
         check=False,
     )
-    assert bad.returncode == 1 and "sun_elevation_rad" in bad.stderr
+    assert bad.returncode == 1 and "sun_elevation_deg: must be within -90..=90 degrees, got 100" in bad.stderr
     assert not (tmp_path / "x.exr").exists()
     klassen = tmp_path / "klassen.exr"
     r = subprocess.run(

@@ -260,14 +260,21 @@ fn scene_from_json(py: Python<'_>, text: &str, source_name: &str, mesh_arrays: O
         .map_err(|e| scene_err(py, e))
 }
 
-fn parse_layers(names: Vec<String>) -> PyResult<Vec<LayerKind>> {
+fn parse_layers(py: Python<'_>, names: Vec<String>) -> PyResult<Vec<LayerKind>> {
     names
         .into_iter()
         .map(|n| {
             serde_json_layer(&n).ok_or_else(|| {
-                PyValueError::new_err(format!(
-                    "unknown layer {n:?}: expected inscatter, transmittance, depth, sun_transmittance, error, inscatter_per_light or surface_transmittance_per_light"
-                ))
+                scene_err(
+                    py,
+                    SceneError {
+                        source_name: "render arguments".into(),
+                        path: "layers".into(),
+                        message: format!(
+                            "unknown layer {n:?}: expected inscatter, transmittance, depth, sun_transmittance, error, inscatter_per_light or surface_transmittance_per_light"
+                        ),
+                    },
+                )
             })
         })
         .collect()
@@ -287,7 +294,13 @@ fn serde_json_layer(name: &str) -> Option<LayerKind> {
     .find(|k| k.to_string() == name)
 }
 
-fn with_overrides(scene: &Scene, tolerance: Option<f64>, threads: Option<usize>, layers: Option<Vec<String>>) -> PyResult<Scene> {
+fn with_overrides(
+    py: Python<'_>,
+    scene: &Scene,
+    tolerance: Option<f64>,
+    threads: Option<usize>,
+    layers: Option<Vec<String>>,
+) -> PyResult<Scene> {
     let mut s = scene.clone();
     if let Some(t) = tolerance {
         s.output.tolerance = t;
@@ -296,7 +309,21 @@ fn with_overrides(scene: &Scene, tolerance: Option<f64>, threads: Option<usize>,
         s.output.threads = n;
     }
     if let Some(l) = layers {
-        s.output.layers = parse_layers(l)?;
+        s.output.layers = parse_layers(py, l)?;
+    }
+    if tolerance.is_some() || threads.is_some() {
+        // The overrides are checked as the scene's own fields are (a SceneFormatError naming
+        // `output.tolerance`, not a bare ValueError from deep inside the render).
+        s.validate().map_err(|(path, message)| {
+            scene_err(
+                py,
+                SceneError {
+                    source_name: "render arguments".into(),
+                    path,
+                    message,
+                },
+            )
+        })?;
     }
     Ok(s)
 }
@@ -326,7 +353,7 @@ fn render<'py>(
     cancel: Option<Bound<'py, PyAny>>,
     progress: Option<Bound<'py, PyAny>>,
 ) -> PyResult<(Bound<'py, PyDict>, String)> {
-    let s = with_overrides(&scene.inner, tolerance, threads, layers)?;
+    let s = with_overrides(py, &scene.inner, tolerance, threads, layers)?;
     let relay = ProgressRelay::default();
     let to_relay = relay.clone();
     let (mut images, mut report) = interruptible(py, cancel.as_ref(), &mut relay.poll(progress.as_ref()), move |flag| {
@@ -392,7 +419,7 @@ fn render_to_files(
     cancel: Option<Bound<'_, PyAny>>,
     progress: Option<Bound<'_, PyAny>>,
 ) -> PyResult<String> {
-    let s = with_overrides(&scene.inner, tolerance, threads, None)?;
+    let s = with_overrides(py, &scene.inner, tolerance, threads, None)?;
     let relay = ProgressRelay::default();
     let to_relay = relay.clone();
     let r = interruptible(py, cancel.as_ref(), &mut relay.poll(progress.as_ref()), move |flag| {
@@ -427,13 +454,39 @@ fn sky<'py>(
     ozone: f64,
     altitude_m: f64,
     sun_size_deg: f64,
-    width: usize,
+    width: i64,
     tolerance: f64,
     sun_disc: bool,
     multiple_scattering: bool,
     out: Option<PathBuf>,
     cancel: Option<Bound<'py, PyAny>>,
 ) -> PyResult<(Bound<'py, PyAny>, String)> {
+    let sky_error = |py: Python<'_>, (path, message): (String, String)| {
+        scene_err(
+            py,
+            SceneError {
+                source_name: "sky parameters".into(),
+                path,
+                message,
+            },
+        )
+    };
+    tyndall_cli::check_sky_angles(sun_elevation_deg, sun_rotation_deg, sun_size_deg, 90.0).map_err(|e| sky_error(py, e))?;
+    if !(2..=65536).contains(&width) {
+        return Err(sky_error(py, ("width".into(), format!("must be within 2..=65536 px, got {width}"))));
+    }
+    if !(1e-6..=0.5).contains(&tolerance) {
+        return Err(sky_error(
+            py,
+            ("tolerance".into(), format!("must be within 1e-6..=0.5, got {tolerance}")),
+        ));
+    }
+    let width = width as usize;
+    tyndall_cli::check_sky_memory(width).map_err(|e| sky_error(py, e))?;
+    if let Some(path) = &out {
+        let report_path = path.with_extension("report.json");
+        tyndall_cli::prepare_outputs(path, None, Some(&report_path)).map_err(|e| RenderFailed::new_err(e.to_string()))?;
+    }
     let params = tyndall_core::sky::atmosphere::AtmosphereParams {
         air_density: air,
         aerosol_density: aerosol,
@@ -444,21 +497,9 @@ fn sky<'py>(
         sun_size_rad: sun_size_deg.to_radians(),
         ..Default::default()
     };
-    params.validate().map_err(|(path, message)| {
-        scene_err(
-            py,
-            SceneError {
-                source_name: "sky parameters".into(),
-                path,
-                message,
-            },
-        )
-    })?;
-    if !(1e-6..=0.5).contains(&tolerance) || !(2..=65536).contains(&width) {
-        return Err(PyValueError::new_err(format!(
-            "width must be 2..=65536 and tolerance 1e-6..=0.5, got {width} and {tolerance}"
-        )));
-    }
+    params
+        .validate()
+        .map_err(|(path, message)| sky_error(py, (tyndall_cli::sky_keyword(&path), message)))?;
     let settings = tyndall_core::sky::texture::TextureSettings {
         width,
         tolerance,

@@ -374,6 +374,17 @@ fn execute(cmd: Command) -> Result<(), CliError> {
             multiple_scattering,
             files,
         } => {
+            let max_size_deg = match model {
+                SkyModelName::Atmosphere => 90.0,
+                SkyModelName::Klassen => KLASSEN_MAX_SUN_SIZE_RAD.to_degrees(),
+            };
+            check_sky_angles(sun_elevation, sun_azimuth, sun_size, max_size_deg).map_err(|(path, message)| {
+                CliError::Scene(SceneError {
+                    source_name: "sky parameters".into(),
+                    path,
+                    message,
+                })
+            })?;
             let sky = match model {
                 SkyModelName::Atmosphere => SkyChoice::Atmosphere(tyndall_core::sky::atmosphere::AtmosphereParams {
                     air_density: air,
@@ -622,6 +633,59 @@ pub enum SkyChoice {
     },
 }
 
+/// The largest sun disc Klassen's model takes, rad (5.73°).
+pub const KLASSEN_MAX_SUN_SIZE_RAD: f64 = 0.1;
+
+/// The sun's angles as the user gives them, in degrees (`sun_elevation_deg`,
+/// `sun_rotation_deg`, `sun_size_deg`, the Python keywords; the CLI's
+/// `--sun-elevation`, `--sun-azimuth`, `--sun-size`): `Err((keyword, message))`
+/// in those terms, before they become the models' radians.
+pub fn check_sky_angles(elevation_deg: f64, rotation_deg: f64, size_deg: f64, max_size_deg: f64) -> Result<(), (String, String)> {
+    for (name, v, lo, hi) in [
+        ("sun_elevation_deg", elevation_deg, -90.0, 90.0),
+        ("sun_rotation_deg", rotation_deg, -1e4, 1e4),
+        ("sun_size_deg", size_deg, 0.0, max_size_deg),
+    ] {
+        if !v.is_finite() || v < lo || v > hi {
+            let hi = if hi.fract() == 0.0 { format!("{hi}") } else { format!("{hi:.4}") };
+            return Err((name.into(), format!("must be within {lo}..={hi} degrees, got {v}")));
+        }
+    }
+    Ok(())
+}
+
+/// The Python keyword (and CLI flag) for a field of the atmosphere's parameters.
+pub fn sky_keyword(field: &str) -> String {
+    match field {
+        "air_density" => "air",
+        "aerosol_density" => "aerosol",
+        "ozone_density" => "ozone",
+        other => other,
+    }
+    .into()
+}
+
+/// Memory for a sky texture `width` px wide (RGB f32, height width/2): `Err`
+/// (naming `width`) where the machine cannot allocate it, before any work
+/// (65536 px wide needs 25.8 GB and aborted the process).
+pub fn check_sky_memory(width: usize) -> Result<(), (String, String)> {
+    let bytes = (width as u64) * (width as u64 / 2).max(1) * 12;
+    let fits = usize::try_from(bytes)
+        .ok()
+        .is_some_and(|b| Vec::<u8>::new().try_reserve_exact(b).is_ok());
+    if fits {
+        Ok(())
+    } else {
+        Err((
+            "width".into(),
+            format!(
+                "a {width} px wide sky needs {:.1} GB for its pixels, more than this machine can allocate",
+                bytes as f64 / 1e9
+            ),
+        ))
+    }
+}
+
 /// Renders a sky world texture and writes the EXR (plain R, G, B), the report
 /// and optionally a preview; returns the report. Invalid parameters are an error
 /// naming the field.
@@ -665,7 +729,7 @@ pub fn sky_to_files_with(
     let with_ms;
     let (model, name): (&dyn tyndall_core::sky::texture::SkyModel, &str) = match sky {
         SkyChoice::Atmosphere(p) => {
-            p.validate().map_err(|(path, message)| bad(path, message))?;
+            p.validate().map_err(|(path, message)| bad(sky_keyword(&path), message))?;
             if options.multiple_scattering {
                 with_ms = tyndall_core::sky::atmosphere::AtmosphereWithMultipleScattering::new(*p, 1e-3);
                 (&with_ms, "atmosphere")
@@ -687,7 +751,7 @@ pub fn sky_to_files_with(
                     std::f64::consts::FRAC_PI_2,
                 ),
                 ("sun_rotation_rad", *sun_rotation_rad, -1e3, 1e3),
-                ("sun_size_rad", *sun_size_rad, 0.0, 0.1),
+                ("sun_size_rad", *sun_size_rad, 0.0, KLASSEN_MAX_SUN_SIZE_RAD),
             ] {
                 if !(v.is_finite() && (lo..=hi).contains(&v)) {
                     return Err(bad(field.into(), format!("{v} is outside {lo}..={hi}")));
@@ -722,6 +786,7 @@ pub fn sky_to_files_with(
             ),
         }));
     }
+    check_sky_memory(settings.width).map_err(|(path, message)| bad(path, message))?;
     prepare_outputs(out, preview, report_path)?;
     let (tex, mut report) = tyndall_core::sky::render_world_with(model, name, settings, &options.build);
     if let Some(parent) = out.parent().filter(|p| !p.as_os_str().is_empty()) {

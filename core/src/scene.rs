@@ -1037,6 +1037,19 @@ impl Scene {
     /// JSON whose printing and parsing took longer than rendering it (the
     /// Python bindings pass numpy arrays this way).
     pub fn from_json_str_with_meshes(text: &str, source_name: &str, arrays: Vec<MeshArrays>) -> Result<Scene, SceneError> {
+        // (serde reads a struct from an array too, by field order: a whole scene
+        // given as `[1, {camera}, …]` rendered.)
+        let first = text.trim_start().chars().next();
+        if first.is_some_and(|c| c != '{') {
+            return Err(SceneError {
+                source_name: source_name.to_string(),
+                path: ".".into(),
+                message: format!(
+                    "a scene is a JSON object {{\"version\": 1, …}}, got text starting with {:?}",
+                    first.unwrap_or(' ')
+                ),
+            });
+        }
         let de = &mut serde_json::Deserializer::from_str(text);
         let mut scene: Scene = serde_path_to_error::deserialize(de).map_err(|e| {
             let mut path = e.path().to_string();
@@ -1221,6 +1234,19 @@ impl Validator {
     fn non_negative(&mut self, field: &str, x: f64, unit: &str) {
         if self.finite(field, x) && x < 0.0 {
             self.fail(field, format!("must be ≥ 0{}, got {}", with_unit(unit), number(x)));
+        }
+    }
+    /// A light's `color × field` (each valid on its own) must not overflow f64.
+    fn colour_times(&mut self, field: &str, color: [f64; 3], x: f64) {
+        if x.is_finite() && color.iter().all(|c| c.is_finite()) && color.iter().any(|c| !(c * x).is_finite()) {
+            self.fail(
+                field,
+                format!(
+                    "color × {field} overflows f64 ({} × {}): scale them down",
+                    number(color.iter().copied().fold(0.0, f64::max)),
+                    number(x)
+                ),
+            );
         }
     }
     fn vec3(&mut self, field: &str, v: [f64; 3]) -> bool {
@@ -1557,17 +1583,20 @@ impl Validator {
                     self.direction("direction_to_sun", *direction_to_sun);
                     self.color("color", *color);
                     self.non_negative("strength_w_m2", *strength_w_m2, "W·m⁻²");
+                    self.colour_times("strength_w_m2", *color, *strength_w_m2);
                     self.range("angular_diameter_deg", *angular_diameter_deg, 0.0, 180.0, "degrees");
                 }
                 Light::Ambient(AmbientLight { color, radiance, .. }) => {
                     self.color("color", *color);
                     self.non_negative("radiance", *radiance, "W·m⁻²·sr⁻¹");
+                    self.colour_times("radiance", *color, *radiance);
                 }
                 Light::Point(p) => {
                     self.vec3("position", p.position);
                     self.orientation(p.position, &p.orientation);
                     self.color("color", p.color);
                     self.non_negative("power_w", p.power_w, "W");
+                    self.colour_times("power_w", p.color, p.power_w);
                     self.non_negative("radius_m", p.radius_m, "m");
                     self.push("distribution");
                     self.distribution(&p.distribution);
@@ -1579,6 +1608,7 @@ impl Validator {
                     self.orientation(p.position, &p.orientation);
                     self.color("color", p.color);
                     self.non_negative("power_w", p.power_w, "W");
+                    self.colour_times("power_w", p.color, p.power_w);
                     self.non_negative("radius_m", p.radius_m, "m");
                     self.range("spot_size_deg", p.spot_size_deg, 0.1, 180.0, "degrees");
                     self.range("spot_blend", p.spot_blend, 0.0, 1.0, "");
@@ -1588,6 +1618,7 @@ impl Validator {
                     self.direction("direction_to_light", w.direction_to_light);
                     self.color("color", w.color);
                     self.non_negative("irradiance_w_m2", w.irradiance_w_m2, "W·m⁻²");
+                    self.colour_times("irradiance_w_m2", w.color, w.irradiance_w_m2);
                     self.window_aperture(w);
                 }
             }

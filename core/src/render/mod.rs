@@ -409,7 +409,7 @@ fn check_finite(images: &Images, report: &Report) -> Result<(), RenderError> {
                 "the values exceed the range of f32 (3.4e38); light strengths or medium coefficients this large overflow it, so scale them down".to_string()
             } else {
                 format!(
-                    "{} samples were already not finite in f64; this is a bug, please report the scene",
+                    "{} samples were already not finite in f64: light strengths or coefficients within a few orders of f64's limit (1.8e308) overflow, so scale them down; with ordinary values this is a bug, please report the scene",
                     report.stats.non_finite_pixels
                 )
             };
