@@ -186,3 +186,54 @@ def test_sky_multiple_scattering_is_optional_and_adds_light() -> None:
     assert (y2 >= y1 - 2e-3 * np.maximum(y1, 1e-4 * y1.max())).all()
     computed = " ".join(item["what"] for item in rep2["plan"]["computed"])
     assert "multiple scattering (approximation)" in computed
+
+
+def _pixel_solid_angles(height: int, width: int) -> np.ndarray:
+    """Exact solid angle of each row's pixels of an equirectangular texture, sr."""
+    theta = np.pi * np.arange(height + 1) / height
+    return (np.cos(theta[:-1]) - np.cos(theta[1:])) * 2 * np.pi / width
+
+
+@pytest.mark.parametrize("width", [64, 256, 1024])
+def test_the_sun_disc_carries_the_sun_lamps_irradiance(width: int) -> None:
+    """The radiance the disc adds, integrated over the pixels' exact solid angles, equals the
+    lamp's RGB irradiance: it was 6.3× too bright with the sun at the zenith at 256 px (the
+    subsamples were weighted alike in pixel coordinates, not by solid angle), and absent at
+    64 px (the disc fell between every subsample)."""
+    for elevation in (90.0, 89.8, 45.0, 10.0):
+        with_disc, report = tyndall.sky(elevation, 30.0, width=width)
+        without, _ = tyndall.sky(elevation, 30.0, width=width, sun_disc=False)
+        omega = _pixel_solid_angles(width // 2, width)[:, None]
+        painted = [((with_disc[..., c].astype(np.float64) - without[..., c]) * omega).sum() for c in range(3)]
+        lamp = report["sun_lamp"]["rgb_irradiance_w_m2"]
+        np.testing.assert_allclose(painted, lamp, rtol=1e-5, err_msg=f"{width} px, {elevation}°")
+
+
+def test_the_setting_sun_shines_above_the_horizon_only() -> None:
+    """With the sun's centre on the horizon, half its disc is set: nothing is painted below
+    the horizon (half the disc's light was drawn onto the ground), and the lamp carries what
+    is painted above it. Just above, the whole disc shines again."""
+    width = 512
+    omega = _pixel_solid_angles(width // 2, width)[:, None]
+    irradiance = {}
+    for elevation in (0.0, 0.3):
+        with_disc, report = tyndall.sky(elevation, 0.0, width=width)
+        without, _ = tyndall.sky(elevation, 0.0, width=width, sun_disc=False)
+        disc = (with_disc[..., 0].astype(np.float64) - without[..., 0]) * omega
+        lamp = report["sun_lamp"]["rgb_irradiance_w_m2"][0]
+        assert disc[width // 4 :].sum() == 0.0  # rows below the horizon
+        assert disc[: width // 4].sum() == pytest.approx(lamp, rel=1e-5)
+        irradiance[elevation] = lamp
+    assert 0.0 < irradiance[0.0] < 0.6 * irradiance[0.3]
+
+
+def test_a_low_suns_colours_are_brought_into_rec709() -> None:
+    """A deep-red low sun lies outside Rec.709: its blue came out negative in the lamp
+    (−1.9 W·m⁻²) and down to −5924 W·m⁻²·sr⁻¹ in the texture, which Cycles would emit as
+    negative light. Every pixel and the lamp are now ≥ 0, at the same luminance."""
+    for elevation in (0.0, 1.0, 3.0):
+        rgb, report = tyndall.sky(elevation, 0.0, width=128)
+        assert rgb.min() >= 0.0, elevation
+        assert min(report["sun_lamp"]["rgb_irradiance_w_m2"]) >= 0.0, elevation
+    rgb, report = tyndall.sky(1.0, 0.0, width=128)
+    assert any(c["what"] == "colours outside Rec.709" for c in report["plan"]["computed"])

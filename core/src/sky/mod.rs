@@ -205,6 +205,15 @@ pub fn render_world_cancellable(
     } else {
         plan.left_out("sun disc", "not requested: use the sun lamp instead");
     }
+    if tex.gamut_clipped_pixels > 0 {
+        plan.computed(
+            "colours outside Rec.709",
+            format!(
+                "{} pixels had a negative Rec.709 channel (spectra outside its gamut, e.g. the deep red of a low sun): desaturated into it at their luminance",
+                tex.gamut_clipped_pixels
+            ),
+        );
+    }
     let lamp = SunLamp::new(model.sun_direction(), tex.sun_rgb_irradiance, model.sun_angular_diameter());
     let report = SkyReport {
         tyndall_version: crate::VERSION.into(),

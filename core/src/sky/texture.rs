@@ -266,6 +266,9 @@ pub struct WorldTexture {
     pub sun_pixels: usize,
     /// The sun for a Blender sun lamp: RGB irradiance, W·m⁻² per channel.
     pub sun_rgb_irradiance: [f64; 3],
+    /// Pixels whose colour lay outside Rec.709 (a negative channel) and were
+    /// desaturated into it at their luminance ([`clip_to_gamut`]).
+    pub gamut_clipped_pixels: usize,
     /// The colour path used and why.
     pub colour: ColourDecision,
     /// The sampling used.
@@ -1813,7 +1816,7 @@ pub fn build_world_texture_cancellable(
     if cancelled() {
         return None;
     }
-    let (sun_pixels, sun_rgb) = add_sun_disc(model, settings, width, height, &mut rgb);
+    let (sun_pixels, sun_rgb, gamut_clipped_pixels) = add_sun_disc(model, settings, width, height, &mut rgb);
     Some(WorldTexture {
         width,
         height,
@@ -1826,6 +1829,7 @@ pub fn build_world_texture_cancellable(
         pixel_limited_error: stats.pixel_limited_error,
         sun_pixels,
         sun_rgb_irradiance: sun_rgb,
+        gamut_clipped_pixels,
         colour: decision,
         integrator: options.integrator,
         first_estimates: 0,
@@ -1877,7 +1881,7 @@ fn build_coherence(model: &dyn SkyModel, settings: &TextureSettings, threshold: 
             (full, firsts, model_err)
         })
         .collect();
-    let (sun_pixels, sun_rgb) = add_sun_disc(model, settings, width, height, &mut rgb);
+    let (sun_pixels, sun_rgb, gamut_clipped_pixels) = add_sun_disc(model, settings, width, height, &mut rgb);
     WorldTexture {
         width,
         height,
@@ -1890,6 +1894,7 @@ fn build_coherence(model: &dyn SkyModel, settings: &TextureSettings, threshold: 
         pixel_limited_error: 0.0,
         sun_pixels,
         sun_rgb_irradiance: sun_rgb,
+        gamut_clipped_pixels,
         colour: ColourDecision {
             path: "spectral".into(),
             reason: "Klassen's coherence baseline is spectral at every evaluated pixel".into(),
@@ -1905,63 +1910,166 @@ fn build_coherence(model: &dyn SkyModel, settings: &TextureSettings, threshold: 
     }
 }
 
-/// The sun: its irradiance after the atmosphere, as RGB for a sun lamp, and
-/// optionally its disc added to `rgb`. Returns (disc pixels, RGB irradiance).
-fn add_sun_disc(model: &dyn SkyModel, settings: &TextureSettings, width: usize, height: usize, rgb: &mut [[f32; 3]]) -> (usize, [f64; 3]) {
-    let sun = model.sun_direction();
-    let sun_spec = model.sun_irradiance();
-    let sun_rgb = spectrum::spectrum_to_rec709(&sun_spec);
-    let mut sun_pixels = 0;
-    let radius = 0.5 * model.sun_angular_diameter();
-    if settings.sun_disc && radius > 0.0 && sun_rgb.iter().any(|v| *v > 0.0) {
-        const LIMB_U: f64 = 0.6;
-        // ∫ over the cap of (1 − u(1 − μ')) dΩ ≈ Ω(1 − u/3) for a small disc, μ' the
-        // cosine across the solar radius; Ω = 2π(1 − cos r) written with sin².
-        let omega = 4.0 * PI * (0.5 * radius).sin().powi(2);
-        let centre = sun_rgb.map(|v| v / (omega * (1.0 - LIMB_U / 3.0)));
-        let pixel_angle = 2.0 * PI / width as f64;
-        let reach = radius + 1.5 * pixel_angle;
-        let disc_value = |d: DVec3| -> Option<f64> {
-            let ang = d.angle_between(sun);
-            if ang > radius {
-                return None;
-            }
-            let rho = ang / radius;
-            let mu = (1.0 - rho * rho).max(0.0).sqrt();
-            Some(1.0 - LIMB_U * (1.0 - mu))
-        };
-        // Pixels whose centre is within reach of the disc: only the rows around
-        // the sun's zenith angle can hold any; supersample those 8×8.
-        let theta_s = sun.z.clamp(-1.0, 1.0).acos();
-        let row_of = |theta: f64| theta / PI * height as f64;
-        let j0 = row_of((theta_s - reach - pixel_angle).max(0.0)).floor().max(0.0) as usize;
-        let j1 = (row_of((theta_s + reach + pixel_angle).min(PI)).ceil() as usize).min(height);
-        let candidates: Vec<usize> = (j0..j1)
-            .flat_map(|j| (0..width).map(move |i| j * width + i))
-            .filter(|&p| {
-                equirect_direction((p % width) as f64 + 0.5, (p / width) as f64 + 0.5, width, height).angle_between(sun)
-                    <= reach + pixel_angle
-            })
-            .collect();
-        for p in candidates {
-            let (i, j) = ((p % width) as f64, (p / width) as f64);
-            let mut acc = 0.0;
-            for a in 0..8 {
-                for b in 0..8 {
-                    let d = equirect_direction(i + (f64::from(a) + 0.5) / 8.0, j + (f64::from(b) + 0.5) / 8.0, width, height);
-                    acc += disc_value(d).unwrap_or(0.0);
-                }
-            }
-            if acc > 0.0 {
-                sun_pixels += 1;
-                let f = acc / 64.0;
-                for k in 0..3 {
-                    rgb[p][k] += (centre[k] * f) as f32;
-                }
+/// A linear Rec.709 colour with no negative channel and the same luminance
+/// (0.2126 R + 0.7152 G + 0.0722 B): desaturated towards its grey just far
+/// enough; black where the luminance itself is ≤ 0. A deep-red setting sun's
+/// spectrum lies outside Rec.709 (its blue came out −1.9 W·m⁻²), and a world
+/// texture with negative radiance makes Cycles emit negative light.
+pub fn clip_to_gamut(c: [f64; 3]) -> [f64; 3] {
+    if c.iter().all(|v| *v >= 0.0) {
+        return c;
+    }
+    let y = 0.2126 * c[0] + 0.7152 * c[1] + 0.0722 * c[2];
+    if y.is_nan() || y <= 0.0 {
+        return [0.0; 3];
+    }
+    let t = c.iter().filter(|v| **v < 0.0).map(|v| y / (y - v)).fold(1.0, f64::min);
+    c.map(|v| (y + t * (v - y)).max(0.0))
+}
+
+/// The sun's limb darkening `1 − u(1 − μ')` at `rho` = (angle from the
+/// disc's centre) / (its angular radius), μ' = √(1 − ρ²).
+const LIMB_U: f64 = 0.6;
+fn limb(rho: f64) -> f64 {
+    1.0 - LIMB_U * (1.0 - (1.0 - rho * rho).max(0.0).sqrt())
+}
+
+/// The limb-weighted fraction of the sun's disc (centre `sun`, angular
+/// radius `radius`) above the horizon at zenith angle `horizon`: 1 or 0 unless
+/// the horizon crosses the disc, then a 64 × 64 polar quadrature.
+fn disc_fraction_above(sun: DVec3, radius: f64, horizon: f64) -> f64 {
+    let zenith = sun.z.clamp(-1.0, 1.0).acos();
+    if radius <= 0.0 {
+        return if zenith <= horizon { 1.0 } else { 0.0 };
+    }
+    if zenith + radius <= horizon {
+        return 1.0;
+    }
+    if zenith - radius >= horizon {
+        return 0.0;
+    }
+    let u = if sun.z.abs() < 1.0 - 1e-12 {
+        sun.cross(DVec3::Z).normalize()
+    } else {
+        DVec3::X
+    };
+    let v = sun.cross(u);
+    let (n, mut above, mut all) = (64, 0.0, 0.0);
+    for i in 0..n {
+        let rho = (i as f64 + 0.5) / n as f64;
+        let (sa, ca) = (rho * radius).sin_cos();
+        let w = limb(rho) * rho;
+        for k in 0..n {
+            let (sp, cp) = (2.0 * PI * (k as f64 + 0.5) / n as f64).sin_cos();
+            let d = sun * ca + (u * cp + v * sp) * sa;
+            all += w;
+            if d.z.clamp(-1.0, 1.0).acos() <= horizon {
+                above += w;
             }
         }
     }
-    (sun_pixels, sun_rgb)
+    above / all
+}
+
+/// The sun: its irradiance after the atmosphere, as RGB for a sun lamp, and
+/// optionally its disc added to `rgb`. Returns (disc pixels, RGB irradiance,
+/// pixels whose colour had to be brought into Rec.709).
+///
+/// Every pixel is first brought into Rec.709 ([`clip_to_gamut`]), and so is
+/// the sun's colour. Where the horizon crosses the disc, only the part above
+/// it shines: the lamp's irradiance is scaled by that part's limb-weighted
+/// share (the atmosphere's transmittance is still the disc centre's), and the
+/// disc is drawn above the horizon only. The disc's pixels carry exactly that
+/// irradiance: each pixel's share is its solid-angle-weighted, limb-darkened
+/// coverage (8 × 8 subsamples weighted by sin θ), divided by the pixel's exact
+/// solid angle. (Subsamples equal in pixel coordinates once made the disc
+/// 6.3× too bright at the zenith at 256 px; a disc that falls between every
+/// subsample of a coarse texture now lights the pixel holding it.)
+fn add_sun_disc(
+    model: &dyn SkyModel,
+    settings: &TextureSettings,
+    width: usize,
+    height: usize,
+    rgb: &mut [[f32; 3]],
+) -> (usize, [f64; 3], usize) {
+    let mut clipped = 0;
+    for px in rgb.iter_mut() {
+        if px.iter().any(|v| *v < 0.0) {
+            clipped += 1;
+            *px = clip_to_gamut(px.map(f64::from)).map(|v| v as f32);
+        }
+    }
+    let sun = model.sun_direction();
+    let sun_spec = model.sun_irradiance();
+    let radius = 0.5 * model.sun_angular_diameter();
+    let horizon = model.horizon_zenith();
+    let visible = disc_fraction_above(sun, radius, horizon);
+    let sun_rgb = clip_to_gamut(spectrum::spectrum_to_rec709(&sun_spec)).map(|v| v * visible);
+    let mut sun_pixels = 0;
+    if !(settings.sun_disc && radius > 0.0 && sun_rgb.iter().any(|v| *v > 0.0)) {
+        return (sun_pixels, sun_rgb, clipped);
+    }
+    let disc_value = |d: DVec3| -> f64 {
+        let ang = d.angle_between(sun);
+        if ang > radius || d.z.clamp(-1.0, 1.0).acos() > horizon {
+            return 0.0;
+        }
+        limb(ang / radius)
+    };
+    let pixel_angle = 2.0 * PI / width as f64;
+    let reach = radius + 1.5 * pixel_angle;
+    // Pixels whose centre is within reach of the disc: only the rows around
+    // the sun's zenith angle can hold any; supersample those 8×8.
+    let theta_s = sun.z.clamp(-1.0, 1.0).acos();
+    let row_of = |theta: f64| theta / PI * height as f64;
+    let j0 = row_of((theta_s - reach - pixel_angle).max(0.0)).floor().max(0.0) as usize;
+    let j1 = (row_of((theta_s + reach + pixel_angle).min(PI)).ceil() as usize).min(height);
+    let candidates: Vec<usize> = (j0..j1)
+        .flat_map(|j| (0..width).map(move |i| j * width + i))
+        .filter(|&p| {
+            equirect_direction((p % width) as f64 + 0.5, (p / width) as f64 + 0.5, width, height).angle_between(sun) <= reach + pixel_angle
+        })
+        .collect();
+    let mut cover: Vec<(usize, f64)> = Vec::new();
+    for p in candidates {
+        let (i, j) = ((p % width) as f64, (p / width) as f64);
+        let mut acc = 0.0;
+        for b in 0..8 {
+            let y = j + (f64::from(b) + 0.5) / 8.0;
+            let sin_theta = (PI * y / height as f64).sin();
+            for a in 0..8 {
+                let d = equirect_direction(i + (f64::from(a) + 0.5) / 8.0, y, width, height);
+                acc += disc_value(d) * sin_theta;
+            }
+        }
+        if acc > 0.0 {
+            cover.push((p, acc));
+        }
+    }
+    if cover.is_empty() {
+        // The disc fell between every subsample: the pixel holding its centre
+        // (or, set partly, the point of it just above the horizon) takes it.
+        let d = if theta_s <= horizon {
+            sun
+        } else {
+            let up = (DVec3::Z - sun * sun.z).normalize_or(DVec3::X);
+            (sun * (theta_s - horizon).cos() + up * (theta_s - horizon).sin()).normalize()
+        };
+        let x = ((PI - d.y.atan2(d.x)) / (2.0 * PI) * width as f64).rem_euclid(width as f64);
+        let y = (d.z.clamp(-1.0, 1.0).acos() / PI * height as f64).min(height as f64 - 0.5);
+        cover.push(((y as usize).min(height - 1) * width + (x as usize).min(width - 1), 1.0));
+    }
+    let total: f64 = cover.iter().map(|c| c.1).sum();
+    for (p, acc) in cover {
+        let j = (p / width) as f64;
+        let pixel_solid_angle = 2.0 * PI / width as f64 * ((PI * j / height as f64).cos() - (PI * (j + 1.0) / height as f64).cos());
+        let share = acc / total / pixel_solid_angle;
+        sun_pixels += 1;
+        for k in 0..3 {
+            rgb[p][k] += (sun_rgb[k] * share) as f32;
+        }
+    }
+    (sun_pixels, sun_rgb, clipped)
 }
 
 #[cfg(test)]
@@ -2620,7 +2728,8 @@ mod tests {
                 .into_par_iter()
                 .map(|p| {
                     let d = equirect_direction((p % w) as f64 + 0.5, (p / w) as f64 + 0.5, w, h);
-                    spectrum::spectrum_to_rec709(&world.sky_radiance(d, 1e-8).0)
+                    // (The texture's colours are brought into Rec.709: so is the reference.)
+                    clip_to_gamut(spectrum::spectrum_to_rec709(&world.sky_radiance(d, 1e-8).0))
                 })
                 .collect();
             let brightest = exact.iter().fold(0.0f64, |m, c| m.max(luminance(c)));
@@ -2734,7 +2843,7 @@ mod tests {
             .into_par_iter()
             .map(|p| {
                 let d = equirect_direction((p % w) as f64 + 0.5, (p / w) as f64 + 0.5, w, h);
-                spectrum::spectrum_to_xyz(&model.sky_radiance(d, 1e-7).0)
+                in_gamut_xyz(spectrum::spectrum_to_xyz(&model.sky_radiance(d, 1e-7).0))
             })
             .collect();
         let (worst_y, worst_uv, dark) = worst_pixel_errors(&t.rgb, &exact);
@@ -2749,9 +2858,14 @@ mod tests {
         (0..w * h)
             .map(|p| {
                 let d = equirect_direction((p % w) as f64 + 0.5, (p / w) as f64 + 0.5, w, h);
-                spectrum::spectrum_to_xyz(&model.sky_radiance(d, 0.0).0)
+                in_gamut_xyz(spectrum::spectrum_to_xyz(&model.sky_radiance(d, 0.0).0))
             })
             .collect()
+    }
+
+    /// CIE XYZ brought into Rec.709 as the texture's pixels are ([`clip_to_gamut`]).
+    fn in_gamut_xyz(xyz: [f64; 3]) -> [f64; 3] {
+        spectrum::rec709_to_xyz(clip_to_gamut(spectrum::xyz_to_rec709(xyz)))
     }
 
     fn worst_pixel_errors(rgb: &[[f32; 3]], exact: &[[f64; 3]]) -> (f64, f64, usize) {
