@@ -670,10 +670,7 @@ pub fn sky_keyword(field: &str) -> String {
 /// (65536 px wide needs 25.8 GB and aborted the process).
 pub fn check_sky_memory(width: usize) -> Result<(), (String, String)> {
     let bytes = (width as u64) * (width as u64 / 2).max(1) * 12;
-    let fits = usize::try_from(bytes)
-        .ok()
-        .is_some_and(|b| Vec::<u8>::new().try_reserve_exact(b).is_ok());
-    if fits {
+    if tyndall_core::render::can_allocate(bytes) {
         Ok(())
     } else {
         Err((

@@ -361,6 +361,14 @@ fn bytes_per_pixel(scene: &Scene) -> u64 {
 /// within the resolution's range and needs ≥ 290 GB): the estimate of
 /// [`bytes_per_pixel`] is reserved once and released untouched (no page is
 /// used; the allocator refuses what the system cannot provide).
+/// Whether this process can allocate `bytes` at once now (tried and given
+/// back: an allocation that fails later aborts the process instead).
+pub fn can_allocate(bytes: u64) -> bool {
+    usize::try_from(bytes)
+        .ok()
+        .is_some_and(|b| Vec::<u8>::new().try_reserve_exact(b).is_ok())
+}
+
 fn check_memory(scene: &Scene) -> Result<(), RenderError> {
     let [w, h] = match &scene.camera {
         crate::scene::Camera::Perspective(c) => c.resolution,
@@ -368,10 +376,7 @@ fn check_memory(scene: &Scene) -> Result<(), RenderError> {
     };
     let pixels = u64::from(w) * u64::from(h);
     let bytes = pixels.saturating_mul(bytes_per_pixel(scene));
-    let fits = usize::try_from(bytes)
-        .ok()
-        .is_some_and(|b| Vec::<u8>::new().try_reserve_exact(b).is_ok());
-    if fits {
+    if can_allocate(bytes) {
         Ok(())
     } else {
         Err(RenderError::InvalidScene(
