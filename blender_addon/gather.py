@@ -725,7 +725,12 @@ def gather_meshes(
         # An object in an Indirect Only collection is not seen by camera rays (Cycles).
         camera = bool(obj.visible_camera) and not ro.indirect_only
         if not camera and not obj.visible_shadow:
-            notes.append(f"{ro.name}: Ray Visibility > Camera and Shadow are off; left out")
+            why = (
+                "in an Indirect Only collection and Ray Visibility > Shadow is off"
+                if ro.indirect_only and obj.visible_camera
+                else "Ray Visibility > Camera and Shadow are off"
+            )
+            notes.append(f"{ro.name}: {why}; left out")
             continue
         if ro.geometry is not None:
             positions, triangles = ro.geometry

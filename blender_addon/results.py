@@ -11,7 +11,7 @@ import bpy
 import mathutils
 
 from . import gather
-from .core.conversions import layer_safe_name
+from .core.conversions import layer_safe_name, render_resolution
 
 COMPOSITOR_GROUP = "Tyndall Composite"
 LIGHTGROUP_PREFIX = "tyndall_"
@@ -53,7 +53,8 @@ def apply_sky(
     if world.node_tree is None:
         world.use_nodes = True
     tree = world.node_tree
-    out = next((n for n in tree.nodes if n.bl_idname == "ShaderNodeOutputWorld" and n.is_active_output), None)
+    # The output Cycles renders (an output for Cycles before an active one for All).
+    out = gather._active_output(tree, "ShaderNodeOutputWorld")
     if out is None:
         out = tree.nodes.new("ShaderNodeOutputWorld")
     env = tree.nodes.get("Tyndall Sky") or tree.nodes.new("ShaderNodeTexEnvironment")
@@ -86,6 +87,7 @@ def apply_sky(
     # The report's rotation is the sun's direction in the world: a parent's turn must not add
     # to it (the lamp keeps its place and scale).
     rotation = mathutils.Euler(tuple(float(a) for a in lamp["rotation_euler_xyz_rad"]), "XYZ").to_matrix()
+    (view_layer or bpy.context.view_layer).update()  # (a move made just before in a script)
     loc, _rot, scale = sun.matrix_world.decompose()
     sun.matrix_world = mathutils.Matrix.LocRotScale(loc, rotation, scale)
     return sun
@@ -193,7 +195,8 @@ def _mute_volume(owner: bpy.types.World | bpy.types.Material, output: str) -> bo
     for link in ours:
         link.is_muted = True
     if ours:
-        keys = set(gather.muted_by_tyndall(owner) or ()) | {gather.link_key(link) for link in ours}
+        before = gather.muted_by_tyndall(owner)  # (True: an older marker that named no links)
+        keys = (before if isinstance(before, set) else set()) | {gather.link_key(link) for link in ours}
         owner[gather.MUTED_VOLUME_PROP] = "\n".join(sorted(keys))
     return bool(ours)
 
@@ -290,8 +293,8 @@ def setup_compositor(
         return _sock(m.outputs, "Result_Color")
 
     r = scene.render
-    pct = r.resolution_percentage / 100.0
-    render_size = (max(1, int(r.resolution_x * pct)), max(1, int(r.resolution_y * pct)))
+    # (Blender's own rounding of resolution × percentage, as the export computes it.)
+    render_size = render_resolution(r.resolution_x, r.resolution_y, r.resolution_percentage)
     rescale = exr_size is not None and tuple(exr_size) != render_size
     cycles = getattr(scene, "cycles", None)
     exposure = float(getattr(cycles, "film_exposure", 1.0)) if cycles is not None else 1.0

@@ -1750,6 +1750,10 @@ def test_indirect_only_filter_width_and_the_evaluated_camera_are_cycles(addon: N
     built = _built()
     cube = next(m for m in built.scene["meshes"] if m["name"] == "Cube")
     assert cube.get("visible_to_camera") is False and cube.get("casts_shadows", True) is True
+    objs["cube"].visible_shadow = False
+    notes = gather.gather_scene(sc, bpy.context.view_layer).skipped
+    assert "Cube: in an Indirect Only collection and Ray Visibility > Shadow is off; left out" in notes
+    objs["cube"].visible_shadow = True
     assert built.scene["output"]["pixel_filter"] == {"type": "blackman_harris", "width_px": 3.0}
     assert built.scene["camera"]["position"] == pytest.approx([0.0, -10.0, 5.0], abs=1e-5)
     sc.cycles.pixel_filter_type = "BOX"
@@ -1835,3 +1839,56 @@ def test_a_volume_link_the_user_muted_stays_out(addon: None) -> None:
     assert blender_addon.results.mute_world_volume(sc) is True and link.is_muted
     assert len(gather.gather_world_medium(objs["world"])) == 1  # still the scene's haze
     assert blender_addon.results.unmute_world_volume(sc) is True and not link.is_muted
+    # A file from before the marker named its links holds True: muting again must not fail.
+    objs["world"][gather.MUTED_VOLUME_PROP] = True
+    assert blender_addon.results.mute_world_volume(sc) is True and link.is_muted
+    assert gather.muted_by_tyndall(objs["world"]) == {gather.link_key(link)}
+
+
+def test_the_sky_goes_where_cycles_renders_and_the_sun_lamp_stays_put(addon: None, tmp_path: Path) -> None:
+    """The sky is wired into the output Cycles renders (one for Cycles beside an active one
+    for All: the sky went into the All output, and Cycles rendered black), and a sun lamp
+    moved in a script just before keeps its new place (a stale matrix put it back)."""
+    objs = make_scene()
+    sc = bpy.context.scene
+    nt = objs["world"].node_tree
+    for_all = next(n for n in nt.nodes if n.bl_idname == "ShaderNodeOutputWorld")
+    for_cycles = nt.nodes.new("ShaderNodeOutputWorld")
+    for_cycles.target = "CYCLES"
+    for_all.is_active_output = True
+    sun = bpy.data.objects.new("Sun", bpy.data.lights.new("Sun", "SUN"))
+    sc.collection.objects.link(sun)
+    sun.rotation_euler = (math.radians(50.0), 0.0, 0.0)
+    bpy.context.view_layer.update()
+    sun.location = (5.0, 6.0, 7.0)
+    sky = tmp_path / "sky.exr"
+    image = bpy.data.images.new("probe", 8, 4, float_buffer=True)
+    image.filepath_raw = str(sky)
+    image.file_format = "OPEN_EXR"
+    image.save()
+    lamp = {
+        "color": [1.0, 0.9, 0.8],
+        "strength_w_m2": 500.0,
+        "angle_deg": 0.545,
+        "rotation_euler_xyz_rad": [math.radians(40.0), 0.0, math.radians(30.0)],
+    }
+    blender_addon.results.apply_sky(sc, str(sky), {"sun_lamp": lamp}, sun, True)
+    assert for_cycles.inputs["Surface"].links[0].from_node.name == "Tyndall Background"
+    assert not for_all.inputs["Surface"].is_linked or for_all.inputs["Surface"].links[0].from_node.name != (
+        "Tyndall Background"
+    )
+    bpy.context.view_layer.update()
+    assert tuple(sun.matrix_world.translation) == pytest.approx((5.0, 6.0, 7.0))
+
+
+def test_the_composite_is_not_stretched_at_blenders_own_size(addon: None, tmp_path: Path) -> None:
+    """1280 × 720 at 70 % renders 896 × 504 in Blender (its integer arithmetic) and in the
+    export: no Scale nodes and no note (the rounding once gave 503 rows and a stretch)."""
+    make_scene()
+    sc = bpy.context.scene
+    sc.render.resolution_x, sc.render.resolution_y, sc.render.resolution_percentage = 1280, 720, 70
+    exr = tmp_path / "volumetrics.exr"
+    _volumetrics_exr(exr, (896, 504), {"inscatter": 0.25, "transmittance": 0.5})
+    notes: list[str] = []
+    tree = blender_addon.results.setup_compositor(sc, str(exr), {}, {}, notes, (896, 504))
+    assert not [n for n in tree.nodes if n.bl_idname == "CompositorNodeScale"] and notes == []

@@ -1304,8 +1304,13 @@ def test_light_and_shadow_linking_are_noted_not_dropped(tmp_path: Path) -> None:
     lux.GetShadowLinkCollectionAPI().CreateIncludeRootAttr(False)
     lux.GetLightLinkCollectionAPI().CreateExcludesRel().AddTarget("/World/Wall")
     UsdLux.SphereLight.Define(stage, "/World/Plain")
+    # Includes that name every mesh and medium leave nothing out: no note.
+    listed = UsdLux.SphereLight.Define(stage, "/World/Listed")
+    listed_link = UsdLux.LightAPI(listed.GetPrim()).GetLightLinkCollectionAPI()
+    listed_link.CreateIncludeRootAttr(False)
+    listed_link.CreateIncludesRel().AddTarget("/World")
     conv = convert_stage(stage)
-    assert [light["name"] for light in conv.scene["lights"]] == ["Linked", "Plain"]
+    assert [light["name"] for light in conv.scene["lights"]] == ["Linked", "Plain", "Listed"]
     linking = sorted(n for n in conv.notes if "linking" in n)
     assert len(linking) == 2 and all(n.startswith("/World/Linked: ") for n in linking), linking
     assert "light linking collection (lightLink)" in linking[0]
@@ -1450,9 +1455,14 @@ def test_light_inputs_connected_to_a_node_graph_take_its_values(tmp_path: Path) 
     lamp = UsdLux.SphereLight.Define(stage, "/World/Lamp")
     UsdShade.Input(lamp.CreateIntensityAttr()).ConnectToSource(level)
     UsdShade.Input(lamp.CreateColorAttr()).ConnectToSource(tint)
+    cone = rig.CreateInput("cone", Sdf.ValueTypeNames.Float)
+    cone.Set(20.0)
+    shaping = UsdLux.ShapingAPI.Apply(lamp.GetPrim())
+    UsdShade.Input(shaping.CreateShapingConeAngleAttr()).ConnectToSource(cone)
     light = convert_stage(stage).scene["lights"][0]
     assert light["power_w"] == pytest.approx(50.0 * math.pi * 4.0 * math.pi * 0.25)  # normalize off, r = 0.5
     assert light["color"] == [1.0, 0.25, 0.125]
+    assert (light["type"], light["spot_size_deg"]) == ("spot", 40.0)  # a connected cone counts as authored
     shader = UsdShade.Shader.Define(stage, "/World/Rig/Noise")
     UsdShade.Input(lamp.GetIntensityAttr()).ConnectToSource(shader.CreateOutput("out", Sdf.ValueTypeNames.Float))
     with pytest.raises(UsdSceneError) as err:

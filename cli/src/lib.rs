@@ -379,9 +379,16 @@ fn execute(cmd: Command) -> Result<(), CliError> {
                 SkyModelName::Klassen => KLASSEN_MAX_SUN_SIZE_RAD.to_degrees(),
             };
             check_sky_angles(sun_elevation, sun_azimuth, sun_size, max_size_deg).map_err(|(path, message)| {
+                // (The flags' names, not the Python keywords.)
+                let flag = match path.as_str() {
+                    "sun_elevation_deg" => "--sun-elevation",
+                    "sun_rotation_deg" => "--sun-azimuth",
+                    "sun_size_deg" => "--sun-size",
+                    other => other,
+                };
                 CliError::Scene(SceneError {
                     source_name: "sky parameters".into(),
-                    path,
+                    path: flag.into(),
                     message,
                 })
             })?;

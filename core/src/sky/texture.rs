@@ -2056,7 +2056,11 @@ fn add_sun_disc(
             (sun * (theta_s - horizon).cos() + up * (theta_s - horizon).sin()).normalize()
         };
         let x = ((PI - d.y.atan2(d.x)) / (2.0 * PI) * width as f64).rem_euclid(width as f64);
-        let y = (d.z.clamp(-1.0, 1.0).acos() / PI * height as f64).min(height as f64 - 0.5);
+        let mut y = d.z.clamp(-1.0, 1.0).acos() / PI * height as f64;
+        // (Not a row wholly below the horizon: a point on the horizon itself
+        // falls on the boundary between the rows above and below it.)
+        let last_row_above = ((horizon / PI * height as f64).ceil() - 1.0).max(0.0);
+        y = y.min(last_row_above + 0.5).min(height as f64 - 0.5);
         cover.push(((y as usize).min(height - 1) * width + (x as usize).min(width - 1), 1.0));
     }
     let total: f64 = cover.iter().map(|c| c.1).sum();

@@ -136,8 +136,11 @@ def _value(prim: Usd.Prim, name: str, time: Usd.TimeCode) -> Any:
 
 
 def _authored(prim: Usd.Prim, name: str) -> bool:
+    """A value authored on the attribute, or (for ``inputs:``) a connection that gives one."""
     attr = prim.GetAttribute(name)
-    return bool(attr) and attr.HasAuthoredValue()
+    return bool(attr) and (
+        attr.HasAuthoredValue() or (name.startswith("inputs:") and attr.HasAuthoredConnections())
+    )
 
 
 def _float(prim: Usd.Prim, name: str, time: Usd.TimeCode, default: float | None = None) -> float:
@@ -267,6 +270,8 @@ class _Converter:
         self.placed: set[str] = set()
         #: The entries of ``skipped`` for prims invisible at their own place on the stage.
         self.invisible_in_place: list[dict[str, str]] = []
+        #: The meshes and media a linking collection could leave out (read at the first light).
+        self.linkable: list[Sdf.Path] | None = None
         if up == UsdGeom.Tokens.y:
             self.notes.append("Y-up stage: rotated +90° about X into Tyndall's Z-up world (as Blender imports it)")
         if mpu != 1.0:
@@ -504,14 +509,23 @@ class _Converter:
         """A note for a light whose light-linking or shadow-linking collection leaves
         anything out: Tyndall lights every medium and lets every mesh shadow every light."""
         lux = UsdLux.LightAPI(prim)
+        if self.linkable is None:
+            # What a collection could leave out that Tyndall draws: meshes and media.
+            self.linkable = [
+                p.GetPath()
+                for p in self.stage.Traverse(Usd.TraverseInstanceProxies(Usd.PrimDefaultPredicate))
+                if p.IsA(UsdGeom.Mesh) or _authored(p, NS + "medium:type")
+            ]
         for what, coll in (
             ("light linking", lux.GetLightLinkCollectionAPI()),
             ("shadow linking", lux.GetShadowLinkCollectionAPI()),
         ):
             include_root = coll.GetIncludeRootAttr().Get(self.time)
-            excludes = coll.GetExcludesRel().GetTargets()
-            if (include_root is None or include_root) and not excludes:
+            if (include_root is None or include_root) and not coll.GetExcludesRel().GetTargets():
                 continue  # the fallback: everything is in the collection
+            query = coll.ComputeMembershipQuery()
+            if all(query.IsPathIncluded(p) for p in self.linkable):
+                continue  # (includes that name every mesh and medium leave nothing out)
             self.notes.append(
                 f"{prim.GetPath()}: its {what} collection ({coll.GetName()}) is not applied: "
                 + ("it lights every medium" if what == "light linking" else "every mesh shadows it")
