@@ -1919,7 +1919,7 @@ pub fn clip_to_gamut(c: [f64; 3]) -> [f64; 3] {
     if c.iter().all(|v| *v >= 0.0) {
         return c;
     }
-    let y = 0.2126 * c[0] + 0.7152 * c[1] + 0.0722 * c[2];
+    let y = luminance(&c);
     if y.is_nan() || y <= 0.0 {
         return [0.0; 3];
     }
