@@ -195,3 +195,92 @@ def test_output_paths_are_checked_before_the_render(
         assert r.returncode == 1 and message in r.stderr, r.stderr
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a", "b", "d", "folder", "s.json"]
     assert list(folder.iterdir()) == []
+
+
+def test_report_path_may_not_replace_another_output_or_the_scene(
+    tyndall_exe: Path, small_scene: Callable[..., SceneDict], tmp_path: Path
+) -> None:
+    """`--report` was never checked: `--report o.exr` left JSON text in the image and
+    `--report scene.json` replaced the scene (exit 0 both times)."""
+    scene = tmp_path / "s.json"
+    text = json.dumps(small_scene())
+    scene.write_text(text)
+    out = tmp_path / "o.exr"
+    for args, message in (
+        (("--report", out), "the report is written as JSON"),
+        (("--report", scene), "is the input"),
+        (("--report", tmp_path / "sub" / ".." / "s.json"), "is the input"),
+        (("--preview", tmp_path / "p.png", "--report", tmp_path / "r.png"), "the report is written as JSON"),
+    ):
+        r = run(tyndall_exe, "render", scene, "--out", out, *args, "--quiet")
+        assert r.returncode == 1 and message in r.stderr, r.stderr
+    assert scene.read_text() == text
+    assert not out.exists()
+
+
+def test_long_output_names_get_their_report(
+    tyndall_exe: Path, small_scene: Callable[..., SceneDict], tmp_path: Path
+) -> None:
+    """A 240-byte image name is legal, and so is its report's; the report's temporary
+    file was named after it (`.<name>.<pid>.tmp`, over 255 bytes) and the write failed."""
+    scene = tmp_path / "s.json"
+    scene.write_text(json.dumps(small_scene()))
+    out = tmp_path / ("x" * 236 + ".exr")
+    r = run(tyndall_exe, "render", scene, "--out", out, "--quiet")
+    assert r.returncode == 0, r.stderr
+    assert json.loads(out.with_suffix(".report.json").read_text())["resolution"] == [40, 30]
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(["s.json", out.name, out.stem + ".report.json"])
+
+
+def test_bench_sizes_out_of_range_are_usage_errors(tyndall_exe: Path) -> None:
+    """`tyndall bench --width 0` (or 70000, or --threads 5000) panicked in the bench scene."""
+    for args in (("--width", "0"), ("--width", "70000"), ("--height", "0"), ("--threads", "5000")):
+        r = run(tyndall_exe, "bench", *args, "--repeat", "1")
+        assert r.returncode == 2, (args, r.stderr)
+        assert "panicked" not in r.stderr and "Traceback" not in r.stderr
+        assert args[0] in r.stderr
+
+
+def test_render_prints_the_reports_warnings(
+    tyndall_exe: Path, small_scene: Callable[..., SceneDict], tmp_path: Path
+) -> None:
+    """Warnings went only into the report JSON; the summary now counts them and the
+    command prints each on stderr (here: a light at the camera's position)."""
+    spot = {"type": "spot", "name": "at_eye", "position": [0.0, 0.0, 1.5], "power_w": 100.0,
+            "orientation": {"look_at": {"target": [0.0, 10.0, 1.5]}}}
+    scene = tmp_path / "s.json"
+    scene.write_text(json.dumps(small_scene(lights=[spot])))
+    r = run(tyndall_exe, "render", scene, "--out", tmp_path / "o.exr")
+    assert r.returncode == 0, r.stderr
+    report = json.loads((tmp_path / "o.report.json").read_text())
+    assert report["warnings"], report
+    for w in report["warnings"]:
+        assert f"tyndall: warning: {w}" in r.stderr
+    assert f"; {len(report['warnings'])} warnings" in r.stdout
+    assert "pixels not converged" in r.stdout
+
+
+def test_ctrl_c_stops_a_render(tyndall_exe: Path, small_scene: Callable[..., SceneDict], tmp_path: Path) -> None:
+    """Ctrl-C (SIGINT) left `tyndall render` running to its end (rc 0, files written):
+    the interpreter is released during the render, so Python's handler never ran."""
+    import signal
+    import time
+
+    spot = {"type": "spot", "name": "s", "position": [0.5, 8.0, 4.0], "power_w": 500.0, "spot_size_deg": 40}
+    big = small_scene(lights=[spot])
+    big["camera"]["resolution"] = [640, 480]
+    big["output"] = {"threads": 1, "tolerance": 1e-6}
+    scene = tmp_path / "s.json"
+    scene.write_text(json.dumps(big))
+    proc = subprocess.Popen(
+        [str(tyndall_exe), "render", str(scene), "--out", str(tmp_path / "o.exr"), "--quiet"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+    )
+    time.sleep(1.0)
+    assert proc.poll() is None, "the render must still be running when Ctrl-C comes"
+    start = time.monotonic()
+    proc.send_signal(signal.SIGINT)
+    rc = proc.wait(timeout=30)
+    assert time.monotonic() - start < 2.0
+    assert rc != 0
+    assert not (tmp_path / "o.exr").exists() and not (tmp_path / "o.report.json").exists()

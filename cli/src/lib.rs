@@ -47,9 +47,12 @@ pub enum CliError {
 }
 
 /// Checks the output paths before a render or a sky, so that no work is lost
-/// and nothing is half written: the image must end in `.exr` and the preview
-/// in `.png` (their formats), neither path may be a directory, and the
-/// folders of all three are created.
+/// and nothing is half written: the image must end in `.exr`, the preview in
+/// `.png` and the report in `.json` (their formats), no path may be a
+/// directory, no two may name the same file (a report over the image would
+/// replace it), and the folders of all three are created. A scene file
+/// given as the report is refused by its extension only if it does not end
+/// in `.json`: the CLI also passes the scene to [`check_not_an_input`].
 pub fn prepare_outputs(out: &Path, preview: Option<&Path>, report: Option<&Path>) -> Result<(), CliError> {
     let wants = |p: &Path, ext: &str, what: &str| -> Result<(), CliError> {
         let format = if ext == "exr" { "an OpenEXR" } else { "a PNG" };
@@ -74,6 +77,26 @@ pub fn prepare_outputs(out: &Path, preview: Option<&Path>, report: Option<&Path>
     if let Some(p) = preview {
         wants(p, "png", "preview")?;
     }
+    if let Some(p) = report
+        && !p
+            .extension()
+            .and_then(|e| e.to_str())
+            .is_some_and(|e| e.eq_ignore_ascii_case("json"))
+    {
+        return Err(CliError::Output {
+            path: p.to_path_buf(),
+            message: "the report is written as JSON: give a file name ending in .json".into(),
+        });
+    }
+    let named: Vec<&Path> = all().collect();
+    for (i, a) in named.iter().enumerate() {
+        if named[..i].iter().any(|b| same_file_name(a, b)) {
+            return Err(CliError::Output {
+                path: a.to_path_buf(),
+                message: "is given for two outputs (image, preview, report): give each its own file".into(),
+            });
+        }
+    }
     for p in all() {
         if let Some(parent) = p.parent().filter(|d| !d.as_os_str().is_empty()) {
             std::fs::create_dir_all(parent).map_err(|source| CliError::Io {
@@ -81,6 +104,41 @@ pub fn prepare_outputs(out: &Path, preview: Option<&Path>, report: Option<&Path>
                 source,
             })?;
         }
+    }
+    Ok(())
+}
+
+/// Whether `a` and `b` name the same file: their folders made absolute with
+/// `.` and `..` resolved in the text (a folder that does not exist yet, as in
+/// `new/../scene.json`, cannot be resolved on disk), then links resolved
+/// where the folder exists; their names compared exactly.
+fn same_file_name(a: &Path, b: &Path) -> bool {
+    let folder = |p: &Path| -> PathBuf {
+        let dir = p.parent().filter(|d| !d.as_os_str().is_empty()).unwrap_or(Path::new("."));
+        let absolute = std::path::absolute(dir).unwrap_or_else(|_| dir.to_path_buf());
+        let mut plain = PathBuf::new();
+        for part in absolute.components() {
+            match part {
+                std::path::Component::CurDir => {}
+                std::path::Component::ParentDir => {
+                    plain.pop();
+                }
+                other => plain.push(other),
+            }
+        }
+        std::fs::canonicalize(&plain).unwrap_or(plain)
+    };
+    a.file_name() == b.file_name() && folder(a) == folder(b)
+}
+
+/// Refuses an output that names an input file (`--report scene.json` would
+/// replace the scene).
+pub fn check_not_an_input(output: &Path, input: &Path) -> Result<(), CliError> {
+    if same_file_name(output, input) {
+        return Err(CliError::Output {
+            path: output.to_path_buf(),
+            message: format!("is the input {}: give another file name", input.display()),
+        });
     }
     Ok(())
 }
@@ -187,18 +245,18 @@ enum Command {
     Schema,
     /// Measure Mpixel/s of the height fog at a given size, with and without a 10k-triangle mesh.
     Bench {
-        /// Width, px.
-        #[arg(long, default_value_t = 1920)]
+        /// Width, px (1–16384).
+        #[arg(long, default_value_t = 1920, value_parser = clap::value_parser!(u32).range(1..=16384))]
         width: u32,
-        /// Height, px.
-        #[arg(long, default_value_t = 1080)]
+        /// Height, px (1–16384).
+        #[arg(long, default_value_t = 1080, value_parser = clap::value_parser!(u32).range(1..=16384))]
         height: u32,
         /// Repetitions (the best and median are reported).
         #[arg(long, default_value_t = 7)]
         repeat: usize,
-        /// Worker threads, 0 = all cores.
-        #[arg(long, default_value_t = 0)]
-        threads: usize,
+        /// Worker threads, 0 = all cores (at most 1024).
+        #[arg(long, default_value_t = 0, value_parser = clap::value_parser!(u16).range(0..=1024))]
+        threads: u16,
     },
 }
 
@@ -297,6 +355,16 @@ fn execute(cmd: Command) -> Result<(), CliError> {
             threads,
             quiet,
         } => {
+            for output in [
+                Some(files.out.as_path()),
+                files.preview.as_deref(),
+                Some(files.report_path().as_path()),
+            ]
+            .into_iter()
+            .flatten()
+            {
+                check_not_an_input(output, &scene)?;
+            }
             let mut s = Scene::load(&scene)?;
             if let Some(t) = tolerance {
                 s.output.tolerance = t;
@@ -306,6 +374,9 @@ fn execute(cmd: Command) -> Result<(), CliError> {
             }
             let r = render_to_files(&s, &files.out, Some(&files.report_path()), files.preview.as_deref(), !quiet)?;
             say!("{}", summary(&r, &files.out));
+            for w in &r.warnings {
+                eprintln!("tyndall: warning: {w}");
+            }
             Ok(())
         }
         Command::Demo { out_dir, quiet } => {
@@ -478,7 +549,7 @@ fn execute(cmd: Command) -> Result<(), CliError> {
                 ("height fog, 10k-triangle mesh, Blender pixel filter", true, true),
             ];
             for (label, mesh, filtered) in cases {
-                let mut scene = tyndall_core::bench_scenes::height_fog(width, height, threads, mesh);
+                let mut scene = tyndall_core::bench_scenes::height_fog(width, height, threads.into(), mesh)?;
                 if !filtered {
                     scene.output.pixel_filter = tyndall_core::scene::PixelFilter::None;
                 }
@@ -510,7 +581,7 @@ fn execute(cmd: Command) -> Result<(), CliError> {
                     if threads == 0 {
                         std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1)
                     } else {
-                        threads
+                        usize::from(threads)
                     }
                 );
                 say!("  best run: {stages}");
@@ -523,14 +594,21 @@ fn execute(cmd: Command) -> Result<(), CliError> {
 fn summary(r: &Report, out: &Path) -> String {
     let total: f64 = r.timings.iter().map(|t| t.seconds).sum();
     format!(
-        "{}: {}x{} in {:.3} s; error estimate max {:.3e} abs, {:.3e} rel; {} items left out",
+        "{}: {}x{} in {:.3} s; error estimate max {:.3e} abs, {:.3e} rel ({:.3e} rel at filtered edges); {} pixels not converged; {} items left out{}",
         out.display(),
         r.resolution[0],
         r.resolution[1],
         total,
         r.error.max_abs,
         r.error.max_rel,
-        r.plan.left_out.len()
+        r.error.edge_max_rel,
+        r.error.pixels_not_converged + r.error.edge_pixels_not_converged,
+        r.plan.left_out.len(),
+        if r.warnings.is_empty() {
+            String::new()
+        } else {
+            format!("; {} warnings", r.warnings.len())
+        }
     )
 }
 
@@ -849,20 +927,10 @@ fn progress_bar() -> ProgressBar {
     b
 }
 
-/// Writes `bytes` to `path` through a temporary file and a rename.
+/// Writes `bytes` to `path` through a temporary file and a rename (the
+/// image writer's: a short temporary name however long `path`'s is).
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), CliError> {
-    let dir = path.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new("."));
-    let tmp = dir.join(format!(
-        ".{}.{}.tmp",
-        path.file_name().and_then(|n| n.to_str()).unwrap_or("out"),
-        std::process::id()
-    ));
-    std::fs::write(&tmp, bytes).map_err(|source| CliError::Io { path: tmp.clone(), source })?;
-    std::fs::rename(&tmp, path).map_err(|source| {
-        let _ = std::fs::remove_file(&tmp);
-        CliError::Io {
-            path: path.to_path_buf(),
-            source,
-        }
-    })
+    use std::io::Write;
+    io::write_atomically(path, |file| file.write_all(bytes).map_err(|e| ImageIoError::io(path, e)))?;
+    Ok(())
 }

@@ -9,7 +9,7 @@ fn bench(c: &mut Criterion) {
     g.sample_size(20);
     g.throughput(Throughput::Elements(1920 * 1080));
     for (name, mesh) in [("no_geometry", false), ("mesh_10k_triangles", true)] {
-        let scene = height_fog(1920, 1080, 0, mesh);
+        let scene = height_fog(1920, 1080, 0, mesh).expect("the bench scene is valid");
         g.bench_function(name, |b| {
             b.iter(|| tyndall_core::render(&scene, None).map(|(img, _)| img.inscatter.len()))
         });

@@ -4,8 +4,9 @@
 use crate::scene::Scene;
 
 /// The benchmark scene: height fog seen from 2 m, sun and ambient; with
-/// `mesh`, a ground grid plus a sphere, 10 000+ triangles in all.
-pub fn height_fog(width: u32, height: u32, threads: usize, mesh: bool) -> Scene {
+/// `mesh`, a ground grid plus a sphere, 10 000+ triangles in all. A size or
+/// thread count the scene format refuses is that error (naming the field).
+pub fn height_fog(width: u32, height: u32, threads: usize, mesh: bool) -> Result<Scene, crate::scene::SceneError> {
     let meshes = if mesh {
         tessellated_sphere_and_ground()
     } else {
@@ -19,7 +20,7 @@ pub fn height_fog(width: u32, height: u32, threads: usize, mesh: bool) -> Scene 
   "media": [{{"type": "height_fog", "scale_height_m": 25, "rayleigh": {{"scattering": [0.0006, 0.0012, 0.003]}}, "mie": {{"scattering": 0.02, "absorption": 0.002, "phase": {{"type": "henyey_greenstein", "g": 0.7}}}}}}],
   "output": {{"threads": {threads}}}}}"#
     );
-    Scene::from_json_str(&json, "<bench>").unwrap_or_else(|e| panic!("bench scene is invalid: {e}"))
+    Scene::from_json_str(&json, "<bench>")
 }
 
 fn tessellated_sphere_and_ground() -> String {

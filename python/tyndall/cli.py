@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import signal
 import sys
 from pathlib import Path
 from typing import Any
@@ -130,6 +131,13 @@ def main() -> None:
     argv = sys.argv[1:]
     if _is_usd_render(argv):
         sys.exit(render_usd(argv[1:]))
+    # The Rust command line runs with the interpreter released, so Python's
+    # own Ctrl-C handler (a flag checked between bytecodes) would never run:
+    # Ctrl-C would leave the render going to its end. The default action
+    # ends the process at once, as for any command-line program; outputs are
+    # written through temporary files and renames, so none is left half
+    # written.
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
     sys.exit(cli_main(["tyndall", *argv]))
 
 

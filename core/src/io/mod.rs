@@ -63,7 +63,7 @@ pub enum ImageIoError {
 
 impl ImageIoError {
     /// Shorthand for an [`ImageIoError::Io`] about `path`.
-    pub(crate) fn io(path: &Path, source: std::io::Error) -> Self {
+    pub fn io(path: &Path, source: std::io::Error) -> Self {
         Self::Io {
             path: path.to_path_buf(),
             source,
@@ -102,7 +102,7 @@ static TEMP_COUNTER: AtomicU64 = AtomicU64::new(0);
 /// the directory of `path`. If it succeeds, the file is flushed to disk and
 /// renamed over `path`; if anything fails, the temporary file is removed and
 /// `path` is left untouched.
-pub(crate) fn write_atomically<F>(path: &Path, write: F) -> Result<(), ImageIoError>
+pub fn write_atomically<F>(path: &Path, write: F) -> Result<(), ImageIoError>
 where
     F: FnOnce(&mut File) -> Result<(), ImageIoError>,
 {
