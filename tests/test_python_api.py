@@ -648,3 +648,31 @@ def test_progress_reports_rows_then_the_pixel_filter(tmp_path: Path) -> None:
 
     with pytest.raises(Enough):
         tyndall.render(_slow_stage(), progress=give_up)
+
+
+def test_per_light_layers_keep_each_lights_own_name(small_scene: MakeScene) -> None:
+    """Lights `key`, `key` and `key_2`: the second `key` took `inscatter.key_2` and the
+    light named `key_2` got `inscatter.key_2_2`, with nothing in the report to tell."""
+    def spot(name: str, x: float) -> dict[str, Any]:
+        return {"type": "spot", "name": name, "position": [x, 12.0, 5.0], "power_w": 800.0, "spot_size_deg": 30}
+
+    lights = [spot("key", -3.0), spot("key", 0.0), spot("key_2", 3.0)]
+    output = {"layers": ["inscatter", "inscatter_per_light"], "pixel_filter": {"type": "none"}}
+    layers, report = tyndall.render(small_scene(lights=lights, output=output))
+    assert set(layers) == {"inscatter", "inscatter.key", "inscatter.key_2", "inscatter.key_3"}
+    for layer, light in (("inscatter.key", lights[0]), ("inscatter.key_3", lights[1]), ("inscatter.key_2", lights[2])):
+        alone, _ = tyndall.render(small_scene(lights=[light], output=output))
+        np.testing.assert_allclose(layers[layer], alone["inscatter"], rtol=1e-6, atol=0.0, err_msg=layer)
+    said = {c["what"]: c["how"] for c in report["plan"]["computed"]}
+    assert "layer inscatter.key_3" in said and '"key", the 2nd of that name' in said["layer inscatter.key_3"]
+
+
+def test_a_bad_ies_file_is_an_error_even_at_zero_power(small_scene: MakeScene, tmp_path: Path) -> None:
+    """A missing or malformed profile was accepted when the light's power (or the
+    profile's strength) was 0: an animated power would hide the bad path."""
+    for power, strength in ((0.0, 1.0), (100.0, 0.0)):
+        light = {"type": "point", "name": "p", "position": [0.0, 10.0, 4.0], "power_w": power,
+                 "ies": {"file": str(tmp_path / "missing.ies"), "strength": strength}}
+        with pytest.raises(tyndall.SceneFormatError) as info:
+            tyndall.render(small_scene(lights=[light]))
+        assert "lights[0].ies.file" in str(info.value)

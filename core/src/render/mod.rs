@@ -683,6 +683,19 @@ fn prepare_stage_lights<const C: usize>(scene: &Scene, report: &mut Report) -> R
                     Light::Spot(p) => (p.power_w, p.color, &p.ies, p.casts_shadows),
                     _ => unreachable!("matched above"),
                 };
+                // The profile first: a missing or malformed file is an error
+                // even where this frame's power is 0 (an animated power would
+                // hide a bad path until a later frame).
+                let ies = load_ies(i, ies_ref)?;
+                if let Some((profile, _)) = &ies
+                    && profile.version == crate::light::ies::IesVersion::Lm63_2019
+                    && profile.ballast_lamp_factor != 1.0
+                {
+                    report.warnings.push(format!(
+                        "{label}: its LM-63-2019 profile's file generation type {} (the ballast line's second field) multiplies its candela values, as Cycles applies it; LM-63 does not mean it as a factor",
+                        profile.ballast_lamp_factor
+                    ));
+                }
                 if power_w == 0.0 || color.iter().all(|c| *c == 0.0) || ies_ref.as_ref().is_some_and(|r| r.strength == 0.0) {
                     report.plan.left_out(
                         label,
@@ -691,7 +704,6 @@ fn prepare_stage_lights<const C: usize>(scene: &Scene, report: &mut Report) -> R
                     out.dark.push(light_name(l).to_string());
                     continue;
                 }
-                let ies = load_ies(i, ies_ref)?;
                 let src = match l {
                     Light::Point(p) => crate::light::PointSource::from_point(p, colour_channels::<C>(color), ies),
                     Light::Spot(p) => crate::light::PointSource::from_spot(p, colour_channels::<C>(color), ies),
@@ -915,19 +927,43 @@ fn report_stage<const C: usize>(stage_lights: &stage::StageLights<C>, stats: &Ro
 /// `<prefix>.<name>` layer names (`inscatter.<name>`, …), unique and without
 /// '.' inside the name.
 fn per_light_layer_names(prefix: &str, names: &[String]) -> Vec<String> {
-    let mut out: Vec<String> = Vec::new();
-    for n in names {
-        let clean: String = n.chars().map(|c| if c == '.' || c.is_control() { '_' } else { c }).collect();
-        let base = format!("{prefix}.{}", if clean.is_empty() { "light" } else { &clean });
+    // Layer names are `prefix.name` with the name's dots (EXR's layer
+    // separator) and control characters turned into `_`. A light keeps its
+    // own name where it can: first the lights whose names need no change
+    // (the first of equal ones), then the others in order, each taking its
+    // cleaned name or the first `_2`, `_3`, … that is free and is not
+    // another light's own name (two lights `key` and one `key_2`: `key`,
+    // `key_3`, `key_2`; never `key_2` for the second `key`).
+    let bases: Vec<(String, bool)> = names
+        .iter()
+        .map(|n| {
+            let clean: String = n.chars().map(|c| if c == '.' || c.is_control() { '_' } else { c }).collect();
+            let exact = !clean.is_empty() && clean == *n;
+            (format!("{prefix}.{}", if clean.is_empty() { "light" } else { &clean }), exact)
+        })
+        .collect();
+    let own: std::collections::HashSet<&str> = bases.iter().map(|(b, _)| b.as_str()).collect();
+    let mut taken: std::collections::HashSet<String> = std::collections::HashSet::new();
+    let mut out: Vec<Option<String>> = vec![None; names.len()];
+    for (slot, (base, exact)) in out.iter_mut().zip(&bases) {
+        if *exact && taken.insert(base.clone()) {
+            *slot = Some(base.clone());
+        }
+    }
+    for (slot, (base, _)) in out.iter_mut().zip(&bases) {
+        if slot.is_some() {
+            continue;
+        }
         let mut name = base.clone();
         let mut k = 2;
-        while out.contains(&name) {
+        while taken.contains(&name) || (name != *base && own.contains(name.as_str())) {
             name = format!("{base}_{k}");
             k += 1;
         }
-        out.push(name);
+        taken.insert(name.clone());
+        *slot = Some(name);
     }
-    out
+    out.into_iter().flatten().collect()
 }
 
 fn prepare_media<const C: usize>(scene: &Scene, lights: &LightSet<C>, report: &mut Report) -> Vec<PreparedMedium<C>> {
@@ -3629,6 +3665,36 @@ fn render_channels<const C: usize, const K: usize>(
             light_inscatter.push(vec![[0f32; 3]; w * h]);
         }
     }
+    // Say which light a layer holds wherever its name is not `inscatter.` +
+    // the light's own name (a name taken by another light, or one with dots
+    // or control characters).
+    {
+        let mut all = stage_lights.names()[..n_stage].to_vec();
+        all.extend(stage_lights.dark.iter().cloned());
+        for (k, layer) in light_layer_names.iter().enumerate() {
+            let Some(name) = all.get(k) else { break };
+            if *layer != format!("inscatter.{name}") {
+                let nth = all[..=k].iter().filter(|n| *n == name).count();
+                report.plan.computed(
+                    format!("layer {layer}"),
+                    format!(
+                        "the in-scatter of the stage light named {name:?}{} (point and spot lights first, then windows, each in the scene's order): its own name is another light's or has dots or control characters",
+                        if nth > 1 {
+                            let suffix = match (nth % 10, nth % 100) {
+                                (_, 11..=13) => "th",
+                                (2, _) => "nd",
+                                (3, _) => "rd",
+                                _ => "th",
+                            };
+                            format!(", the {nth}{suffix} of that name")
+                        } else {
+                            String::new()
+                        }
+                    ),
+                );
+            }
+        }
+    }
     let surface_layer_names = if want_surface_t {
         per_light_layer_names("surface_transmittance", &stage_lights.names()[..n_stage])
     } else {
@@ -4076,6 +4142,18 @@ fn abs_rgb_weights() -> [[f64; SPECTRAL_SAMPLES]; 3] {
 
 #[cfg(test)]
 mod tests {
+    #[test]
+    fn per_light_layer_names_keep_own_names_first() {
+        let names = |v: &[&str]| super::per_light_layer_names("inscatter", &v.iter().map(|s| s.to_string()).collect::<Vec<_>>());
+        assert_eq!(
+            names(&["key", "key", "key_2"]),
+            ["inscatter.key", "inscatter.key_3", "inscatter.key_2"]
+        );
+        assert_eq!(names(&["a.b", "a_b"]), ["inscatter.a_b_2", "inscatter.a_b"]);
+        assert_eq!(names(&["", "light"]), ["inscatter.light_2", "inscatter.light"]);
+        assert_eq!(names(&["x", "x", "x"]), ["inscatter.x", "inscatter.x_2", "inscatter.x_3"]);
+    }
+
     use super::*;
 
     /// For a 1-D image `l`: the corrected centre sample's distance from the
