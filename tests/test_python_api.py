@@ -676,3 +676,21 @@ def test_a_bad_ies_file_is_an_error_even_at_zero_power(small_scene: MakeScene, t
         with pytest.raises(tyndall.SceneFormatError) as info:
             tyndall.render(small_scene(lights=[light]))
         assert "lights[0].ies.file" in str(info.value)
+
+
+def test_lm63_2019_generation_type_is_applied_as_cycles_does_and_warned(small_scene: MakeScene, tmp_path: Path) -> None:
+    """An LM-63-2019 file's second ballast-line field is its file generation type; Cycles
+    multiplies the candela values by it (×1.1 here) and so does Tyndall, which said nothing."""
+    body = "TILT=NONE\n1 -1 1 3 1 1 2 0 0 0\n1 {second} 100\n0 45 90\n0\n100 100 100\n"
+    (tmp_path / "old.ies").write_text("IESNA:LM-63-2002\n[TEST] t\n" + body.format(second="1"))
+    (tmp_path / "new.ies").write_text("IES:LM-63-2019\n[TEST] t\n[TESTLAB] t\n[ISSUEDATE] t\n[MANUFAC] t\n"
+                                      + body.format(second="1.10000"))
+    results = {}
+    for name in ("old", "new"):
+        light = {"type": "point", "name": "p", "position": [0.0, 10.0, 4.0], "power_w": 100.0,
+                 "ies": {"file": str(tmp_path / f"{name}.ies")}}
+        results[name] = tyndall.render(small_scene(lights=[light], output={"layers": ["inscatter"]}))
+    ratio = results["new"][0]["inscatter"].sum(dtype=np.float64) / results["old"][0]["inscatter"].sum(dtype=np.float64)
+    assert ratio == pytest.approx(1.1, rel=1e-6)
+    assert not any("LM-63-2019" in w for w in results["old"][1]["warnings"])
+    assert any("file generation type 1.1" in w for w in results["new"][1]["warnings"])
